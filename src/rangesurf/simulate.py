@@ -1,0 +1,1 @@
+"""Synthetic range scenes with ground truth (being written)."""
