@@ -1,0 +1,138 @@
+"""Side-by-side benchmarks against peer libraries, reported as ratios.
+
+Each benchmark times rangesurf and, where one exists and is installed (the
+``bench`` extra), a peer doing the same work in the same process. Results are
+plain dicts so that `benchmarks/` can record them and the README quote them.
+"""
+
+from __future__ import annotations
+
+import platform
+import statistics
+import tempfile
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["time_call", "benchmark_simulator", "benchmark_readers", "run_foundation_benchmarks"]
+
+
+def time_call(function: Callable[[], object], *, repeats: int = 5, warmup: int = 1) -> float:
+    """Median wall-clock seconds of ``function()`` over ``repeats`` runs after ``warmup`` runs."""
+    for _ in range(warmup):
+        function()
+    times = []
+    for _ in range(repeats):
+        started = time.perf_counter()
+        function()
+        times.append(time.perf_counter() - started)
+    return statistics.median(times)
+
+
+def benchmark_simulator(*, frames: int = 10, scene: str = "arena") -> list[dict]:
+    """Simulated frames per second for every sensor preset (noise and mixed pixels on)."""
+    from rangesurf import simulate
+    from rangesurf.frame import SENSORS
+
+    rows = []
+    for name in SENSORS:
+        seconds = time_call(lambda: simulate.simulate_sequence(scene, name, frames, seed=0), repeats=3)
+        rows.append({"benchmark": f"simulate {scene} {name}", "frames_per_second": frames / seconds, "seconds_per_frame": seconds / frames})
+    return rows
+
+
+def _open3d():
+    try:
+        import open3d
+    except ImportError:
+        return None
+    return open3d
+
+
+def benchmark_readers(data_root: Path) -> list[dict]:
+    """Load times of the real scans, against Open3D and NumPy reading the same bytes.
+
+    The 3DTK ``.3d`` body is an ``x y z`` text file, so Open3D's ``xyz``
+    reader and ``numpy.loadtxt`` read the same file (without our organized
+    grid, unit conversion, masking and poses). For PCD the peer is Open3D's
+    PCD reader on the same binary file.
+    """
+    import rangesurf
+    from rangesurf import simulate
+
+    rows = []
+    open3d = _open3d()
+    scan = data_root / "uos-3dtk" / "scan000.3d"
+    if scan.is_file():
+        ours = time_call(lambda: rangesurf.load(scan), repeats=5)
+        row = {"benchmark": "load 3DTK scan000.3d (81,360 points)", "rangesurf_s": ours}
+        with tempfile.TemporaryDirectory() as folder:
+            body = Path(folder) / "scan000.xyz"
+            body.write_text("".join(scan.read_text().splitlines(keepends=True)[1:]))
+            row["numpy_loadtxt_s"] = time_call(lambda: np.loadtxt(body), repeats=3)
+            if open3d is not None:
+                row["open3d_s"] = time_call(lambda: open3d.io.read_point_cloud(str(body), format="xyz"), repeats=5)
+        rows.append(row)
+    bunny = data_root / "bunny" / "bun000.ply"
+    if bunny.is_file():
+        row = {"benchmark": "load bunny bun000.ply (range_grid)", "rangesurf_s": time_call(lambda: rangesurf.load(bunny), repeats=5)}
+        if open3d is not None:
+            row["open3d_s"] = time_call(lambda: open3d.io.read_point_cloud(str(bunny)), repeats=5)
+        rows.append(row)
+
+    frames, _ = simulate.simulate_sequence("arena", "kinect", 1, seed=0)
+    with tempfile.TemporaryDirectory() as folder:
+        pcd = Path(folder) / "kinect.pcd"
+        rangesurf.save(pcd, frames[0])
+        row = {"benchmark": "load organized binary PCD 640x480", "rangesurf_s": time_call(lambda: rangesurf.load(pcd), repeats=5)}
+        if open3d is not None:
+            row["open3d_s"] = time_call(lambda: open3d.io.read_point_cloud(str(pcd), remove_nan_points=False), repeats=5)
+        rows.append(row)
+    for row in rows:
+        for peer in ("open3d_s", "numpy_loadtxt_s"):
+            if peer in row:
+                row[f"speedup_vs_{peer[:-2]}"] = row[peer] / row["rangesurf_s"]
+    return rows
+
+
+def machine_description() -> str:
+    import os
+
+    return f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+
+
+def run_foundation_benchmarks(data_root: Path) -> dict:
+    """All foundation benchmarks in one run; returns ``{"machine", "simulator", "readers"}``."""
+    return {
+        "machine": machine_description(),
+        "open3d": getattr(_open3d(), "__version__", None),
+        "simulator": benchmark_simulator(),
+        "readers": benchmark_readers(data_root),
+    }
+
+
+def format_results(results: dict) -> str:
+    """Markdown tables of `run_foundation_benchmarks` results."""
+    lines = [f"Machine: {results['machine']}; Open3D {results['open3d'] or 'not installed'}", ""]
+    lines += ["| simulator | frames/s | ms/frame |", "|---|---:|---:|"]
+    for row in results["simulator"]:
+        lines.append(f"| {row['benchmark']} | {row['frames_per_second']:.1f} | {1000 * row['seconds_per_frame']:.1f} |")
+    lines += ["", "| reader | rangesurf ms | Open3D ms | NumPy loadtxt ms | speed-up vs Open3D | vs loadtxt |", "|---|---:|---:|---:|---:|---:|"]
+
+    def cell(value, scale=1000.0, digits=1):
+        return "—" if value is None else f"{value * scale:.{digits}f}"
+
+    for row in results["readers"]:
+        lines.append(
+            f"| {row['benchmark']} | {cell(row['rangesurf_s'])} | {cell(row.get('open3d_s'))} | "
+            f"{cell(row.get('numpy_loadtxt_s'))} | {cell(row.get('speedup_vs_open3d'), 1, 2)}x | "
+            f"{cell(row.get('speedup_vs_numpy_loadtxt'), 1, 2)}x |"
+        )
+    return "\n".join(lines).replace("—x", "—")
+
+
+def default_data_root() -> Path:
+    """``../shared/data`` beside the repository checkout (where tests find it too)."""
+    return Path(__file__).resolve().parents[2].parent / "shared" / "data"

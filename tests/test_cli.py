@@ -1,0 +1,76 @@
+"""The `rangesurf` command: info, simulate, demo, errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+import rangesurf as rs
+from rangesurf.cli import main
+
+
+def test_version(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"rangesurf {rs.__version__}"
+
+
+def test_simulate_writes_frames_and_truth_that_info_describes(tmp_path, capsys):
+    out = tmp_path / "sim"
+    assert main(["simulate", "--sensor", "sr3000", "--scene", "corridor", "--frames", "3", "--out", str(out), "--quiet"]) == 0
+    assert sorted(p.name for p in out.glob("frame*.npz")) == ["frame000000.npz", "frame000001.npz", "frame000002.npz"]
+    truths = [rs.simulate.load_ground_truth(p) for p in sorted((out / "truth").glob("*.npz"))]
+    assert len(truths) == 3
+    frames = rs.load(out)
+    for frame, truth in zip(frames, truths):
+        np.testing.assert_allclose(frame.reference_pose, truth.T_world_sensor)
+    capsys.readouterr()
+
+    assert main(["info", str(out), "--json"]) == 0
+    summaries = json.loads(capsys.readouterr().out)
+    assert len(summaries) == 3
+    for summary, frame in zip(summaries, frames):
+        assert summary["sensor"] == "sr3000"
+        assert summary["grid"].startswith("144x176")
+        assert summary["valid"] == int(frame.valid.sum())
+        assert summary["range_m"]["max"] == pytest.approx(float(np.nanmax(frame.range)), abs=1e-3)
+        np.testing.assert_allclose(summary["pose"]["translation_m"], frame.pose[:3, 3], atol=1e-3)
+
+
+def test_info_text_output(tmp_path, capsys):
+    out = tmp_path / "sim"
+    main(["simulate", "--frames", "1", "--out", str(out), "--quiet"])
+    capsys.readouterr()
+    assert main(["info", str(out / "frame000000.npz")]) == 0
+    text = capsys.readouterr().out
+    frame = rs.load(out / "frame000000.npz")[0]
+    assert "sensor      sr3000" in text
+    assert f"valid       {int(frame.valid.sum())} " in text
+
+
+def test_demo_reports_errors_consistent_with_the_sensor_model(tmp_path, capsys):
+    assert main(["demo", "--frames", "2", "--out", str(tmp_path / "demo"), "--quiet"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    rows = [line.split() for line in lines if line.strip()[:1].isdigit()]
+    assert len(rows) == 2
+    for row in rows:
+        median_error_mm, median_sigma_mm = float(row[6]), float(row[8])
+        # Median |e| of a zero-mean spread sigma is about 0.67 sigma.
+        assert 0.3 * median_sigma_mm < median_error_mm < 1.2 * median_sigma_mm
+
+
+def test_errors_exit_2_with_a_message_naming_the_file(tmp_path, capsys):
+    bad = tmp_path / "broken.pcd"
+    bad.write_text("this is not a pcd\n")
+    assert main(["info", str(bad)]) == 2
+    assert "broken.pcd" in capsys.readouterr().err
+    assert main(["info", str(tmp_path / "missing")]) == 2
+    assert "no such file or folder" in capsys.readouterr().err
+
+
+def test_bad_frame_count_is_rejected(tmp_path):
+    with pytest.raises(SystemExit):
+        main(["simulate", "--frames", "0", "--out", str(tmp_path)])
