@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from rangesurf.frame import SENSORS, RangeFrame, SensorModel, get_sensor, unknown_sensor
 from rangesurf.io._common import FormatError, atomic_write
@@ -507,33 +508,13 @@ def _viewpoint_to_pose(path: Path, viewpoint: tuple[float, ...]) -> np.ndarray |
 
 
 def _quaternion_to_rotation(quaternion: np.ndarray) -> np.ndarray:
-    w, x, y, z = quaternion
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
-    ])
+    """Rotation matrix of a unit quaternion in PCD order ``(w, x, y, z)``."""
+    return Rotation.from_quat(quaternion, scalar_first=True).as_matrix()
 
 
 def _rotation_to_quaternion(rotation: np.ndarray) -> np.ndarray:
-    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0`` (Shepperd's method, stable for all angles)."""
-    r = rotation
-    trace = np.trace(r)
-    if trace > 0:
-        s = 2.0 * math.sqrt(1.0 + trace)
-        q = [0.25 * s, (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s]
-    elif r[0, 0] > r[1, 1] and r[0, 0] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[0, 0] - r[1, 1] - r[2, 2])
-        q = [(r[2, 1] - r[1, 2]) / s, 0.25 * s, (r[0, 1] + r[1, 0]) / s, (r[0, 2] + r[2, 0]) / s]
-    elif r[1, 1] > r[2, 2]:
-        s = 2.0 * math.sqrt(1.0 + r[1, 1] - r[0, 0] - r[2, 2])
-        q = [(r[0, 2] - r[2, 0]) / s, (r[0, 1] + r[1, 0]) / s, 0.25 * s, (r[1, 2] + r[2, 1]) / s]
-    else:
-        s = 2.0 * math.sqrt(1.0 + r[2, 2] - r[0, 0] - r[1, 1])
-        q = [(r[1, 0] - r[0, 1]) / s, (r[0, 2] + r[2, 0]) / s, (r[1, 2] + r[2, 1]) / s, 0.25 * s]
-    q = np.asarray(q)
-    q /= np.linalg.norm(q)
-    return -q if q[0] < 0 else q
+    """Unit quaternion ``(w, x, y, z)`` with ``w >= 0``."""
+    return Rotation.from_matrix(rotation).as_quat(canonical=True, scalar_first=True)
 
 
 # --------------------------------------------------------------------------

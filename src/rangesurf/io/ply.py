@@ -63,6 +63,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from rangesurf.frame import RangeFrame, SensorModel, check_rigid_transform, get_sensor, unknown_sensor
 from rangesurf.io._common import FormatError, atomic_write
@@ -725,20 +726,10 @@ def read_stanford_conf(path: str | Path) -> dict[str, np.ndarray]:
         if not np.all(np.isfinite(numbers)) or quaternion_norm < 1e-9:
             raise FormatError(path, "expected a finite translation and a non-zero quaternion", where=where)
         transform = np.eye(4)
-        transform[:3, :3] = _quaternion_to_matrix(numbers[3:] / quaternion_norm).T
+        transform[:3, :3] = Rotation.from_quat(numbers[3:] / quaternion_norm).as_matrix().T
         transform[:3, 3] = numbers[:3]
         poses[words[1]] = transform
     return poses
-
-
-def _quaternion_to_matrix(quaternion: np.ndarray) -> np.ndarray:
-    """Rotation matrix of a unit quaternion ``(x, y, z, w)``."""
-    x, y, z, w = quaternion
-    return np.array([
-        [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-        [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-        [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-    ])
 
 
 def _find_stanford_pose(path: Path) -> np.ndarray | None:
