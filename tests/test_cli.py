@@ -47,8 +47,8 @@ def test_info_text_output(tmp_path, capsys):
     assert main(["info", str(out / "frame000000.npz")]) == 0
     text = capsys.readouterr().out
     frame = rs.load(out / "frame000000.npz")[0]
-    assert "sensor      sr3000" in text
-    assert f"valid       {int(frame.valid.sum())} " in text
+    assert "sensor          sr3000" in text
+    assert f"valid           {int(frame.valid.sum())} " in text
 
 
 def test_demo_reports_errors_consistent_with_the_sensor_model(tmp_path, capsys):

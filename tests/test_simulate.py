@@ -552,3 +552,12 @@ def test_frame_outside_every_surface_is_all_cut_off():
     assert truth.clamped[~truth.outlier].all()
     assert np.all(frame.range[~truth.outlier] == np.float32(7.5))
     assert not truth.mixed.any()
+
+
+def test_iter_sequence_streams_the_same_frames_as_simulate_sequence():
+    frames, truths = sim.simulate_sequence("corridor", "sr3000", 3, seed=11)
+    for k, (frame, truth) in enumerate(sim.iter_sequence("corridor", "sr3000", 3, seed=11)):
+        np.testing.assert_array_equal(frame.range, frames[k].range)
+        np.testing.assert_array_equal(truth.surface_id, truths[k].surface_id)
+    with pytest.raises(ValueError, match="unknown scene"):
+        sim.iter_sequence("moon", "sr3000", 3)  # checked before the first frame is asked for

@@ -61,18 +61,18 @@ def _frame_summary(frame: RangeFrame) -> dict:
 
 def _print_summary(summary: dict) -> None:
     print(f"{summary['source'] or '(frame)'}")
-    print(f"  sensor      {summary['sensor']}")
-    print(f"  grid        {summary['grid']}, {summary['cells']} cells")
-    print(f"  valid       {summary['valid']} ({100 * summary['valid_fraction']:.1f} %)")
+    print(f"  sensor          {summary['sensor']}")
+    print(f"  grid            {summary['grid']}, {summary['cells']} cells")
+    print(f"  valid           {summary['valid']} ({100 * summary['valid_fraction']:.1f} %)")
     if "range_m" in summary:
         r = summary["range_m"]
-        print(f"  range [m]   min {r['min']:.3f}  median {r['median']:.3f}  max {r['max']:.3f}")
+        print(f"  range [m]       min {r['min']:.3f}  median {r['median']:.3f}  max {r['max']:.3f}")
     for name in ("pose", "reference_pose"):
         if name in summary:
             p = summary[name]
             t = ", ".join(f"{v:.3f}" for v in p["translation_m"])
-            print(f"  {name:<11} t = ({t}) m, rotation {p['rotation_deg']:.2f} deg")
-    print(f"  intensity   {'yes' if summary['has_intensity'] else 'no'}")
+            print(f"  {name:<15} t = ({t}) m, rotation {p['rotation_deg']:.2f} deg")
+    print(f"  intensity       {'yes' if summary['has_intensity'] else 'no'}")
 
 
 def _command_info(args: argparse.Namespace) -> int:
@@ -90,19 +90,25 @@ def _command_info(args: argparse.Namespace) -> int:
 def _simulate_to_folder(
     *, scene: str, sensor: str, n_frames: int, seed: int, out: Path, quiet: bool
 ) -> tuple[list[RangeFrame], list, float]:
-    """Simulate a sequence and write frames and ground truth to ``out``; return them and the seconds spent simulating."""
+    """Simulate a sequence, writing frames and ground truth to ``out`` as they come.
+
+    Returns the frames, their ground truth and the seconds spent simulating
+    (writing excluded).
+    """
     from rangesurf import simulate
 
     out.mkdir(parents=True, exist_ok=True)
-    started = time.perf_counter()
-    frames, truths = simulate.simulate_sequence(scene, sensor, n_frames, seed=seed)
-    elapsed = time.perf_counter() - started
-    for index, (frame, truth) in enumerate(
-        _progress(zip(frames, truths), total=n_frames, description="writing", quiet=quiet)
-    ):
+    sequence = simulate.iter_sequence(scene, sensor, n_frames, seed=seed)
+    frames, truths, simulating = [], [], 0.0
+    for index in _progress(range(n_frames), total=n_frames, description="simulating", quiet=quiet):
+        started = time.perf_counter()
+        frame, truth = next(sequence)
+        simulating += time.perf_counter() - started
         rangesurf.save(out / f"frame{index:06d}.npz", frame)
         simulate.save_ground_truth(out / "truth" / f"truth{index:06d}.npz", truth)
-    return frames, truths, elapsed
+        frames.append(frame)
+        truths.append(truth)
+    return frames, truths, simulating
 
 
 def _command_simulate(args: argparse.Namespace) -> int:

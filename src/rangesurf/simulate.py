@@ -41,7 +41,7 @@ import dataclasses
 import functools
 import math
 import os
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -63,6 +63,7 @@ __all__ = [
     "get_scene",
     "look_at",
     "default_trajectory",
+    "iter_sequence",
     "ray_cast",
     "SimulationNoise",
     "GroundTruth",
@@ -1256,7 +1257,7 @@ def _mixed_pixels(
     return pixels, mixed_range, mixed_intensity
 
 
-def simulate_sequence(
+def iter_sequence(
     scene: str | Scene = "arena",
     sensor: str | SensorModel = "sr3000",
     n_frames: int = 10,
@@ -1264,8 +1265,10 @@ def simulate_sequence(
     seed: int = 0,
     noise: SimulationNoise | None = None,
     trajectory: np.ndarray | None = None,
-) -> tuple[list[RangeFrame], list[GroundTruth]]:
-    """Simulate a robot recording ``n_frames`` frames in a scene.
+) -> Iterator[tuple[RangeFrame, GroundTruth]]:
+    """Yield ``(frame, truth)`` of a robot recording ``n_frames`` frames in a scene.
+
+    Arguments are checked at once; frames are simulated as they are asked for.
 
     Parameters
     ----------
@@ -1286,12 +1289,12 @@ def simulate_sequence(
         ``T_world_sensor`` per frame; default `default_trajectory` at the
         sensor's frame rate.
 
-    Returns
-    -------
-    frames : list of RangeFrame
-        Timestamps ``k / sensor.frame_rate``, sources
+    Yields
+    ------
+    frame : RangeFrame
+        Timestamp ``k / sensor.frame_rate``, source
         ``"simulated:<scene>/<sensor>/frame0003"``.
-    truth : list of GroundTruth
+    truth : GroundTruth
 
     Raises
     ------
@@ -1301,9 +1304,9 @@ def simulate_sequence(
 
     Examples
     --------
-    >>> frames, truth = simulate_sequence("corridor", "sr3000", n_frames=2, seed=7)
-    >>> frames[1].source
-    'simulated:corridor/sr3000/frame0001'
+    >>> frame, truth = next(iter_sequence("corridor", "sr3000", n_frames=2, seed=7))
+    >>> frame.source
+    'simulated:corridor/sr3000/frame0000'
     """
     scene = get_scene(scene)
     sensor = get_sensor(sensor)
@@ -1319,16 +1322,42 @@ def simulate_sequence(
             raise ValueError(
                 f"trajectory must have shape ({n_frames}, 4, 4) for n_frames={n_frames}, got {poses.shape}"
             )
-    generators = [np.random.default_rng(child) for child in np.random.SeedSequence(seed).spawn(n_frames)]
-    frames, truths = [], []
-    for k, (pose, rng) in enumerate(zip(poses, generators)):
-        frame, truth = simulate_frame(
-            scene, sensor, pose, noise=noise, rng=rng, timestamp=k / sensor.frame_rate,
+    children = np.random.SeedSequence(seed).spawn(n_frames)
+    return _simulated_frames(scene, sensor, poses, children, noise)
+
+
+def _simulated_frames(
+    scene: Scene, sensor: SensorModel, poses: np.ndarray, children: list, noise: SimulationNoise | None
+) -> Iterator[tuple[RangeFrame, GroundTruth]]:
+    for k, (pose, child) in enumerate(zip(poses, children)):
+        yield simulate_frame(
+            scene, sensor, pose, noise=noise, rng=np.random.default_rng(child), timestamp=k / sensor.frame_rate,
             source=f"simulated:{scene.name}/{sensor.name}/frame{k:04d}",
         )
-        frames.append(frame)
-        truths.append(truth)
-    return frames, truths
+
+
+def simulate_sequence(
+    scene: str | Scene = "arena",
+    sensor: str | SensorModel = "sr3000",
+    n_frames: int = 10,
+    *,
+    seed: int = 0,
+    noise: SimulationNoise | None = None,
+    trajectory: np.ndarray | None = None,
+) -> tuple[list[RangeFrame], list[GroundTruth]]:
+    """Simulate a robot recording ``n_frames`` frames in a scene.
+
+    All frames at once; `iter_sequence` yields them one at a time with the
+    same arguments and identical results.
+
+    Examples
+    --------
+    >>> frames, truth = simulate_sequence("corridor", "sr3000", n_frames=2, seed=7)
+    >>> frames[1].source
+    'simulated:corridor/sr3000/frame0001'
+    """
+    pairs = list(iter_sequence(scene, sensor, n_frames, seed=seed, noise=noise, trajectory=trajectory))
+    return [frame for frame, _ in pairs], [truth for _, truth in pairs]
 
 
 # --------------------------------------------------------------------------
