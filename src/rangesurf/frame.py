@@ -485,9 +485,11 @@ class RangeFrame:
         if rays.shape != shape + (3,):
             raise ValueError(f"rays must have shape {shape + (3,)}, got {rays.shape}{where}")
         rays = rays.astype(np.float32, copy=False)
-        norms = np.linalg.norm(rays, axis=-1)
-        if not np.all(np.abs(norms - 1) < _RAY_NORM_TOLERANCE):
-            raise ValueError(f"rays must be finite unit vectors; worst norm {np.nanmax(np.abs(norms - 1)) + 1:.4g}{where}")
+        # einsum: np.linalg.norm over a length-3 last axis is several times slower.
+        squared_norms = np.einsum("...i,...i->...", rays, rays)
+        if not np.all(np.abs(squared_norms - 1) < 2 * _RAY_NORM_TOLERANCE):
+            worst = np.sqrt(squared_norms.flat[np.nanargmax(np.abs(squared_norms - 1))]) if np.isfinite(squared_norms).any() else np.nan
+            raise ValueError(f"rays must be finite unit vectors; worst norm {worst:.4g}{where}")
 
         intensity = self.intensity
         if intensity is not None:

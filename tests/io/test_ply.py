@@ -460,3 +460,87 @@ def test_sensor_grid_must_match_the_file(tmp_path):
 
 def test_missing_file_is_a_format_error(tmp_path):
     assert "no such file" in _error(tmp_path / "absent.ply")
+
+
+# --------------------------------------------------------------------------
+# ASCII bodies: mixed elements, unread elements, the per-vertex frame builder.
+# --------------------------------------------------------------------------
+
+MIXED_HEADER = _header(
+    "ascii", "obj_info num_cols 2", "obj_info num_rows 2", "element meta 3", "property uchar kind",
+    "property list ushort float values", "property float weight", "element vertex 4", *XYZ,
+    "element face 1", "property list uchar int vertex_indices",
+)
+MIXED_META = ["1 2 0.5 1.5 9", "2 0 8", "3 1 2.5 7"]
+MIXED_VERTICES = ["1 2 3", "4 5 6", "0 0 0", "nan 1 2"]
+
+
+def test_ascii_mixed_element_before_the_vertices_is_read_and_skipped(tmp_path):
+    from rangesurf.io.ply import _parse_header, _read_elements
+
+    data = MIXED_HEADER + "\n".join(MIXED_META + MIXED_VERTICES + ["3 0 1 2"]).encode() + b"\n"
+    columns = _read_elements(tmp_path / "m.ply", data, _parse_header(tmp_path / "m.ply", data), {"meta"})
+    np.testing.assert_array_equal(columns["meta"]["kind"], [1, 2, 3])
+    np.testing.assert_array_equal(columns["meta"]["weight"], [9, 8, 7])
+    lengths, items = columns["meta"]["values"]
+    np.testing.assert_array_equal(lengths, [2, 0, 1])
+    np.testing.assert_array_equal(items, [0.5, 1.5, 2.5])
+    (tmp_path / "m.ply").write_bytes(data)
+    frame = _read(tmp_path / "m.ply")
+    np.testing.assert_array_equal(frame.valid, [[True, True], [False, False]])  # 0 0 0 and NaN: no return
+    np.testing.assert_allclose(frame.range[0], [np.sqrt(14), np.sqrt(77)], rtol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("line", "expected"),
+    [
+        ("1 2 0.5 9", "line does not match the properties of element meta: '1 2 0.5 9'"),
+        ("1 -1 9", "line does not match the properties of element meta"),
+        ("1 1.5 0.5 9", "line does not match the properties of element meta"),
+        ("1 nan 0.5 9", "line does not match the properties of element meta"),
+        ("", "line does not match the properties of element meta: ''"),
+        ("1 x 0.5 1.5 9", "expected numbers, got '1 x 0.5 1.5 9'"),
+    ],
+)
+def test_bad_ascii_mixed_line_names_the_line(tmp_path, line, expected):
+    path = tmp_path / "m.ply"
+    path.write_bytes(MIXED_HEADER + "\n".join([line] + MIXED_META[1:] + MIXED_VERTICES).encode() + b"\n")
+    message = _error(path)
+    assert f"line 16: {expected}" in message, message  # 15 header lines
+
+
+def test_unread_trailing_element_may_hold_anything(tmp_path):
+    # Faces after the vertices are not read, so they are not checked either.
+    path = tmp_path / "m.ply"
+    path.write_bytes(MIXED_HEADER + "\n".join(MIXED_META + MIXED_VERTICES + ["3 0 one 2", "junk"]).encode() + b"\n")
+    assert _read(path).shape == (2, 2)
+
+
+def test_crlf_ascii_body_reads_like_lf(tmp_path):
+    lf = _tiny_stanford(TINY_VERTICES, TINY_GRID)
+    head, body = lf.split(b"end_header\n")
+    (tmp_path / "lf.ply").write_bytes(lf)
+    (tmp_path / "crlf.ply").write_bytes(head + b"end_header\n" + body.replace(b"\n", b" \t\r\n"))
+    np.testing.assert_array_equal(_read(tmp_path / "crlf.ply").range, _read(tmp_path / "lf.ply").range)
+
+
+@pytest.mark.parametrize("sensor", ["sr3000", rs.unknown_sensor(144, 176)])
+def test_frame_from_cells_is_from_points_bit_for_bit(sensor):
+    from rangesurf.io.ply import _frame_from_cells
+
+    sensor = rs.get_sensor(sensor)
+    rng = np.random.default_rng(4)
+    cells = sensor.height * sensor.width
+    vertices = rng.normal(0, 1, (cells // 3, 3)) + [0, 0, 3]
+    vertices[::17] = np.nan  # no return
+    vertices[5::23] = 0.0  # 0 0 0: no return either
+    cell_vertex = np.full(cells, -1)
+    chosen = rng.choice(cells, len(vertices), replace=False)
+    cell_vertex[chosen] = np.arange(len(vertices))
+    points = np.full((cells, 3), np.nan)
+    points[chosen] = vertices
+    expected = rs.RangeFrame.from_points(points.reshape(*sensor.shape, 3), sensor=sensor, timestamp=2.0)
+    frame = _frame_from_cells(vertices, cell_vertex, sensor, timestamp=2.0)
+    assert frame.range.tobytes() == expected.range.tobytes()
+    assert frame.rays.tobytes() == expected.rays.tobytes()
+    assert frame.sensor == expected.sensor and frame.timestamp == 2.0

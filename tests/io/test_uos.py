@@ -400,3 +400,21 @@ def test_reflectance_column_becomes_intensity(tmp_path):
     frame = _read(_write_lines(tmp_path / "scan3.3d", lines))
     assert frame.intensity is not None and np.isnan(frame.intensity[0, 0]) and not frame.valid[0, 0]
     assert frame.intensity[1, 5] == (365 % 7) and frame.timestamp == 3.0
+
+
+def test_crlf_tabs_and_blank_lines_read_like_plain_lines(tmp_path):
+    lines = _scan_text()
+    plain = _read(_write_lines(tmp_path / "scan000.3d", lines))
+    messy = [lines[0]] + ["\t" + line.replace(" ", " \t") + "  " for line in lines[1:]]
+    messy.insert(100, "")
+    (tmp_path / "scan001.3d").write_bytes(("\r\n".join(messy) + "\r\n\r\n").encode())
+    copy = _read(tmp_path / "scan001.3d")
+    np.testing.assert_array_equal(copy.range, plain.range)
+    np.testing.assert_array_equal(copy.rays, plain.rays)
+
+
+def test_bad_token_line_counts_crlf_lines(tmp_path):
+    lines = _scan_text(header=False)
+    lines[6] = "1.0 2.0 3,0"
+    (tmp_path / "scan000.3d").write_bytes(("\r\n".join(lines) + "\r\n").encode())
+    assert "line 7: expected numbers, got '3,0' in '1.0 2.0 3,0'" in _error(tmp_path / "scan000.3d")

@@ -67,6 +67,7 @@ from scipy.spatial.transform import Rotation
 
 from rangesurf.frame import RangeFrame, SensorModel, check_rigid_transform, get_sensor, unknown_sensor
 from rangesurf.io._common import FormatError, atomic_write
+from rangesurf.io._text import parse_numbers, split_lists
 
 __all__ = ["read_ply", "write_ply", "read_stanford_conf"]
 
@@ -81,8 +82,6 @@ _INTENSITY_NAMES = ("intensity", "reflectance", "scalar_intensity", "scalar_refl
 _COMMENT_PREFIX = "rangesurf "
 # A header longer than this is not a PLY header: stop before reading binary data.
 _MAX_HEADER_LINES = 10_000
-_WHITESPACE = np.zeros(256, dtype=bool)
-_WHITESPACE[[9, 10, 11, 12, 13, 32]] = True
 
 # Stanford / Cyberware 3030MS virtual sensor (see the module docstring).
 _CYBERWARE_GRID = (400, 512)
@@ -219,38 +218,42 @@ class _AsciiBody:
 
     def __init__(self, path: Path, data: bytes, header: _Header) -> None:
         self.path = path
-        self.body = data[header.data_offset:]
+        self.data = data
+        self.start = header.data_offset
         self.first_line = header.lines + 1
-        buffer = np.frombuffer(self.body, dtype=np.uint8)
-        space = _WHITESPACE[buffer]
-        token_starts = np.flatnonzero(~space & np.concatenate(([True], space[:-1])))
-        self.newlines = np.flatnonzero(buffer == ord("\n"))
-        self.line_of_token = np.searchsorted(self.newlines, token_starts)
-        self.counts = np.bincount(self.line_of_token, minlength=len(self.newlines) + 1)
-        self.first_token = np.concatenate(([0], np.cumsum(self.counts)))
-        self.tokens = self.body.split()
+        # One compiled pass over the whole body: the numbers and the tokens of
+        # every line. Bad tokens are kept, not raised: they only matter in the
+        # elements that are read, and after each element's own layout checks.
+        parsed = parse_numbers(data, start=header.data_offset, strict=False)
+        self.values = parsed.values
+        self.counts = parsed.tokens_per_line
+        self.bad = parsed.bad
         self.cursor = 0  # next body line
+        self.token = 0  # its first token
         # Lines holding data; a body ending in a newline has an empty last "line".
-        self.data_lines = int(np.flatnonzero(self.counts)[-1]) + 1 if len(self.tokens) else 0
+        # Blank lines, if any, end the body: look at its tail first.
+        tail = self.counts[-64:]
+        with_tokens = np.flatnonzero(tail)
+        if len(with_tokens):
+            self.data_lines = len(self.counts) - len(tail) + int(with_tokens[-1]) + 1
+        else:
+            with_tokens = np.flatnonzero(self.counts)
+            self.data_lines = int(with_tokens[-1]) + 1 if len(with_tokens) else 0
 
     def where(self, line: int) -> str:
         return f"line {self.first_line + line}"
 
     def text(self, line: int) -> str:
-        start = 0 if line == 0 else self.newlines[line - 1] + 1
-        end = self.newlines[line] if line < len(self.newlines) else len(self.body)
-        return self.body[start:end].strip()[:80].decode("utf-8", errors="replace")
+        """Body line ``line`` for a message (errors only, so it may be slow)."""
+        text = self.data[self.start:].split(b"\n", line + 1)[line]
+        return text.strip()[:80].decode("utf-8", errors="replace")
 
-    def numbers(self, first: int, last: int, dtype=np.float64) -> np.ndarray:
-        """Every number on lines ``first`` to ``last - 1``."""
-        tokens = self.tokens[self.first_token[first]:self.first_token[last]]
-        try:
-            return np.array(tokens, dtype=dtype)
-        except ValueError:
-            bad = next(i for i, token in enumerate(tokens) if not _is_number(token, dtype))
-            line = int(self.line_of_token[self.first_token[first] + bad])
-            kind = "integers" if np.dtype(dtype).kind == "i" else "numbers"
-            raise FormatError(self.path, f"expected {kind}, got {self.text(line)!r}", where=self.where(line)) from None
+    def numbers(self, begin: int, end: int) -> np.ndarray:
+        """Tokens ``begin`` to ``end - 1``, which must all be numbers."""
+        if self.bad is not None and begin <= self.bad.index < end:
+            line = self.bad.line
+            raise FormatError(self.path, f"expected numbers, got {self.text(line)!r}", where=self.where(line))
+        return self.values[begin:end]
 
     def read(self, element: _Element) -> _Columns:
         first, last = self.cursor, self.cursor + element.count
@@ -263,6 +266,8 @@ class _AsciiBody:
             )
         self.cursor = last
         counts = self.counts[first:last]
+        begin = self.token
+        self.token += int(counts.sum())
         lists = [p for p in element.properties if p.count_dtype is not None]
         if not lists:
             width = len(element.properties)
@@ -272,58 +277,53 @@ class _AsciiBody:
                 names = " ".join(p.name for p in element.properties)
                 raise FormatError(self.path, f"expected {width} numbers ({names}) of element {element.name}, "
                                              f"got {self.text(line)!r}", where=self.where(line))
-            table = self.numbers(first, last).reshape(element.count, width)
+            table = self.numbers(begin, self.token).reshape(element.count, width)
             return {p.name: table[:, i] for i, p in enumerate(element.properties)}
         if len(element.properties) == 1:
-            return {lists[0].name: self._read_list(element, first, last)}
-        return self._read_mixed(element, first, last)
+            return {lists[0].name: self._read_list(element, first, begin, counts)}
+        return self._read_mixed(element, first, self.numbers(begin, self.token), counts)
 
-    def _read_list(self, element: _Element, first: int, last: int) -> tuple[np.ndarray, np.ndarray]:
-        counts = self.counts[first:last]
-        if (counts == 0).any():
-            line = first + int(np.flatnonzero(counts == 0)[0])
+    def _read_list(self, element: _Element, first: int, begin: int, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # Split first (a bad token is NaN there), so the checks come in the
+        # order of the other elements: layout, then numbers, then lengths.
+        values = self.values[begin:self.token]
+        lengths, items, empty, wrong = split_lists(values, counts)
+        if empty >= 0:
             raise FormatError(self.path, f"expected a list (length, then items) of element {element.name}, "
-                                         "got an empty line", where=self.where(line))
-        values = self.numbers(first, last)
-        starts = self.first_token[first:last] - self.first_token[first]
-        lengths = values[starts]
-        wrong = np.flatnonzero(lengths != counts - 1)
-        if len(wrong):
-            line = first + int(wrong[0])
-            raise FormatError(self.path, f"list length {lengths[wrong[0]]:g} does not match the "
-                                         f"{counts[wrong[0]] - 1} items that follow it: {self.text(line)!r}",
-                              where=self.where(line))
-        items = np.delete(values, starts)
-        return lengths.astype(np.int64), items
+                                         "got an empty line", where=self.where(first + empty))
+        self.numbers(begin, self.token)
+        if wrong >= 0:
+            length = values[int(counts[:wrong].sum())]
+            raise FormatError(self.path, f"list length {length:g} does not match the "
+                                         f"{counts[wrong] - 1} items that follow it: {self.text(first + wrong)!r}",
+                              where=self.where(first + wrong))
+        return lengths, items
 
-    def _read_mixed(self, element: _Element, first: int, last: int) -> _Columns:
-        # Rare (lists beside scalars in one element): parse line by line.
-        columns: dict[str, list] = {p.name: [] for p in element.properties}
-        for line in range(first, last):
-            values = self.numbers(line, line + 1)
-            position = 0
-            try:
-                for prop in element.properties:
-                    if prop.count_dtype is None:
-                        columns[prop.name].append(values[position])
-                        position += 1
-                    else:
-                        length = int(values[position])
-                        columns[prop.name].append(values[position + 1:position + 1 + length])
-                        position += 1 + length
-            except IndexError:
-                position = len(values) + 1
-            if position != len(values):
-                raise FormatError(self.path, f"line does not match the properties of element {element.name}: "
-                                             f"{self.text(line)!r}", where=self.where(line))
+    def _read_mixed(self, element: _Element, first: int, values: np.ndarray, counts: np.ndarray) -> _Columns:
+        # Lists beside scalars in one element: walk the properties (not the
+        # lines) with every line's read position at once.
+        line_end = np.cumsum(counts)
+        position = line_end - counts
+        fits = np.ones(element.count, dtype=bool)  # each line so far matches the properties
         out: _Columns = {}
         for prop in element.properties:
+            fits &= position < line_end
+            value = values[np.where(fits, position, 0)] if len(values) else np.zeros(element.count)
             if prop.count_dtype is None:
-                out[prop.name] = np.array(columns[prop.name], dtype=np.float64)
-            else:
-                items = columns[prop.name]
-                out[prop.name] = (np.array([len(i) for i in items], np.int64),
-                                  np.concatenate(items) if items else np.zeros(0))
+                out[prop.name] = value
+                position += 1
+                continue
+            room = line_end - position - 1  # items the rest of the line holds
+            fits &= (value >= 0) & (value <= room) & (value == np.floor(value))  # False for NaN
+            lengths = np.where(fits, value, 0).astype(np.int64)
+            item_start = np.repeat(position + 1 - np.cumsum(lengths) + lengths, lengths)
+            out[prop.name] = (lengths, values[item_start + np.arange(len(item_start))])
+            position += 1 + lengths
+        fits &= position == line_end
+        if not fits.all():
+            line = first + int(np.argmin(fits))
+            raise FormatError(self.path, f"line does not match the properties of element {element.name}: "
+                                         f"{self.text(line)!r}", where=self.where(line))
         return out
 
     def check_end(self) -> None:
@@ -425,14 +425,6 @@ class _BinaryBody:
                                          "(is an element count wrong?)", where=f"byte {self.offset}")
 
 
-def _is_number(token: bytes, dtype=np.float64) -> bool:
-    try:
-        np.array([token], dtype=dtype)
-    except ValueError:
-        return False
-    return True
-
-
 def _read_elements(path: Path, data: bytes, header: _Header, wanted: set[str]) -> dict[str, _Columns]:
     """Read the header's elements up to the last of ``wanted``: name -> columns."""
     body = _AsciiBody(path, data, header) if header.format == "ascii" else _BinaryBody(path, data, header)
@@ -529,8 +521,6 @@ def read_ply(path: str | Path, *, sensor: SensorModel | str | None = None) -> It
             )
         cell_vertex = np.arange(height * width)
     has_vertex = cell_vertex >= 0
-    points = np.full((height * width, 3), np.nan)
-    points[has_vertex] = vertices[cell_vertex[has_vertex]]
     intensity = None
     if vertex_intensity is not None:
         intensity = np.full(height * width, np.nan, np.float32)
@@ -540,16 +530,48 @@ def read_ply(path: str | Path, *, sensor: SensorModel | str | None = None) -> It
     pose = notes.get("T_world_sensor")
     reference_pose = notes.get("reference_T_world_sensor")
     if stanford:
-        # p_s = R (p - o): the virtual Cyberware sensor frame.
-        points = (points - _CYBERWARE_ORIGIN) @ _CYBERWARE_ROTATION.T
+        # p_s = R (p - o): the virtual Cyberware sensor frame. R is diagonal
+        # (+-1), so the product is exactly a sign flip per axis.
+        vertices = (vertices - _CYBERWARE_ORIGIN) * np.diagonal(_CYBERWARE_ROTATION)
         world_from_scan = _find_stanford_pose(path)
         if world_from_scan is not None:
             pose = reference_pose = world_from_scan @ _cyberware_scan_from_sensor()
     model = _sensor_for(path, model, notes, stanford, height, width)
-    yield RangeFrame.from_points(
-        points.reshape(height, width, 3), sensor=model, intensity=intensity, pose=pose,
-        reference_pose=reference_pose, timestamp=notes.get("timestamp", 0.0), source=str(path),
+    yield _frame_from_cells(
+        vertices, cell_vertex, model, intensity=intensity, pose=pose, reference_pose=reference_pose,
+        timestamp=notes.get("timestamp", 0.0), source=str(path),
     )
+
+
+def _frame_from_cells(vertices: np.ndarray, cell_vertex: np.ndarray, sensor: SensorModel, **fields) -> RangeFrame:
+    """`RangeFrame.from_points` of the grid whose cell ``i`` holds ``vertices[cell_vertex[i]]`` (none if -1).
+
+    A range grid usually has far fewer vertices than cells (the bunny scans
+    fill a fifth of theirs), so ranges and rays are computed per vertex and
+    then scattered, with the sensor's rays elsewhere. The result is the
+    same, bit for bit, as from_points on the full grid of points (the tests
+    compare the two); a sensor without a projection fills its rays from
+    neighbouring cells, which from_points does.
+    """
+    height, width = sensor.shape
+    has_vertex = cell_vertex >= 0
+    if sensor.projection is None:
+        points = np.full((height * width, 3), np.nan)
+        points[has_vertex] = vertices[cell_vertex[has_vertex]]
+        return RangeFrame.from_points(points.reshape(height, width, 3), sensor=sensor, **fields)
+    with np.errstate(invalid="ignore"):
+        distance = np.linalg.norm(vertices, axis=-1)
+        usable = np.isfinite(distance) & (distance > 0)  # NaN and 0 0 0 vertices are no return
+        directions = vertices / np.where(usable, distance, 1.0)[:, None]
+    cells = np.flatnonzero(has_vertex)
+    cells = cells[usable[cell_vertex[cells]]]  # the cells with a return
+    source = cell_vertex[cells]
+    range_image = np.full(height * width, np.nan, dtype=np.float32)
+    range_image[cells] = distance[source]
+    rays = sensor.rays().reshape(-1, 3).copy()
+    rays[cells] = directions[source]
+    return RangeFrame(rays=rays.reshape(height, width, 3), range=range_image.reshape(height, width), sensor=sensor,
+                      **fields)
 
 
 def _grid_size(path: Path, header: _Header) -> tuple[int, int]:
@@ -574,6 +596,8 @@ def _grid_size(path: Path, header: _Header) -> tuple[int, int]:
 
 def _check_vertices(path: Path, header: _Header, vertex: _Element, vertices: np.ndarray,
                     intensity: np.ndarray | None, *, allow_nan: bool) -> None:
+    if np.isfinite(vertices).all() and (intensity is None or not np.isinf(intensity).any()):
+        return  # the usual case, without the per-vertex reductions below
     bad = np.isinf(vertices).any(axis=1)
     if intensity is not None:
         bad |= np.isinf(intensity)

@@ -48,7 +48,6 @@ https://slam6d.sourceforge.io (file formats: ``scan_io_uos``).
 
 from __future__ import annotations
 
-import io
 import math
 import re
 from collections.abc import Iterator
@@ -58,6 +57,7 @@ import numpy as np
 
 from rangesurf.frame import RangeFrame, SensorModel, get_sensor, unknown_sensor
 from rangesurf.io._common import FormatError, atomic_write
+from rangesurf.io._text import parse_numbers
 
 __all__ = ["read_uos", "write_uos", "read_uos_pose", "read_uos_frames"]
 
@@ -69,9 +69,6 @@ _FLIP_Y = np.diag([1.0, -1.0, 1.0, 1.0])
 # (3276.7 cm, also seen as 3275.9 cm after the file's rounding).
 _MAX_RANGE_MARGIN = 0.05
 _HEADER = re.compile(rb"^\s*(\d+)\s*[xX]\s*(\d+)\s*$")
-# bytes that separate numbers: space, \t, \n, \v, \f, \r
-_WHITESPACE = np.zeros(256, dtype=bool)
-_WHITESPACE[[9, 10, 11, 12, 13, 32]] = True
 # How far a rotation read from a file may be from orthonormal before it is
 # rejected (the files print 6 significant digits); within it, it is snapped.
 _ROTATION_TOLERANCE = 1e-3
@@ -237,6 +234,7 @@ def _read_bytes(path: Path) -> bytes:
 
 def _parse_points(path: Path, data: bytes) -> tuple[np.ndarray, int | None]:
     """The point lines of a ``.3d`` file as ``(N, C)`` float64, and the header's width."""
+    start = 0
     lines_before = 0
     header_width = None
     first_line_end = data.find(b"\n")
@@ -247,39 +245,16 @@ def _parse_points(path: Path, data: bytes) -> tuple[np.ndarray, int | None]:
         if header_width < 1:
             raise FormatError(path, f"header grid width must be positive, got {first_line.decode(errors='replace')!r}",
                               where="line 1")
-        data = b"" if first_line_end < 0 else data[first_line_end + 1:]
+        start = len(data) if first_line_end < 0 else first_line_end + 1
         lines_before = 1
-    if not data.strip():
+    # One compiled pass gives the numbers and the tokens on every line. A bad
+    # token is reported after the column checks, so that a file with both
+    # kinds of damage names the same line as it always has.
+    parsed = parse_numbers(data, start=start, strict=False)
+    if not len(parsed.values):
         what = "no points after the header" if header_width else "empty file"
         raise FormatError(path, f"{what}; expected lines of 'x y z' in centimetres")
-    # Fast path: NumPy's C parser. It rejects ragged lines and non-numbers,
-    # but its messages count rows without blank lines or the header, so a
-    # failure is re-examined below to name the file's own line.
-    try:
-        values = np.loadtxt(io.BytesIO(data), dtype=np.float64, comments=None, ndmin=2)
-    except ValueError:
-        values = None
-    if values is not None and values.shape[1] >= 3 and _finite_points(values).all():
-        return values, header_width
-    return _diagnose_points(path, data, lines_before), header_width
-
-
-def _finite_points(values: np.ndarray) -> np.ndarray:
-    finite = np.isfinite(values[:, :3]).all(axis=1)
-    if values.shape[1] > 3:
-        finite &= ~np.isinf(values[:, 3])  # NaN reflectance means unknown; Inf is an error
-    return finite
-
-
-def _diagnose_points(path: Path, data: bytes, lines_before: int) -> np.ndarray:
-    """Parse the point lines again, raising `FormatError` at the first bad line."""
-    # Tokens per line, vectorised: a token starts where whitespace ends.
-    buffer = np.frombuffer(data, dtype=np.uint8)
-    space = _WHITESPACE[buffer]
-    token_starts = np.flatnonzero(~space & np.concatenate(([True], space[:-1])))
-    newlines = np.flatnonzero(buffer == ord("\n"))
-    line_of_token = np.searchsorted(newlines, token_starts)
-    counts = np.bincount(line_of_token, minlength=len(newlines) + 1)
+    counts = parsed.tokens_per_line
     point_lines = np.flatnonzero(counts)  # blank lines are skipped
     columns = int(counts[point_lines[0]])
 
@@ -287,7 +262,7 @@ def _diagnose_points(path: Path, data: bytes, lines_before: int) -> np.ndarray:
         return f"line {lines_before + line_index + 1}"
 
     def line_text(line_index: int) -> str:
-        text = data.split(b"\n", line_index + 1)[line_index].strip()
+        text = data[start:].split(b"\n", line_index + 1)[line_index].strip()
         return text[:80].decode("utf-8", errors="replace")
 
     if columns < 3:
@@ -302,32 +277,23 @@ def _diagnose_points(path: Path, data: bytes, lines_before: int) -> np.ndarray:
             f"got {counts[line]}: {line_text(line)!r}",
             where=where(line),
         )
-
-    tokens = data.split()
-    try:
-        flat = np.array(tokens, dtype=np.float64)
-    except ValueError:
-        bad = next(i for i, token in enumerate(tokens) if not _is_number(token))
-        line = int(line_of_token[bad])
+    if parsed.bad is not None:
         raise FormatError(
             path,
-            f"expected numbers, got {tokens[bad][:40].decode('utf-8', errors='replace')!r} in {line_text(line)!r}",
-            where=where(line),
-        ) from None
-    values = flat.reshape(-1, columns)
-    finite = _finite_points(values)
-    if not finite.all():
+            f"expected numbers, got {parsed.bad.text[:40].decode('utf-8', errors='replace')!r} "
+            f"in {line_text(parsed.bad.line)!r}",
+            where=where(parsed.bad.line),
+        )
+    values = parsed.values.reshape(-1, columns)
+    # NaN reflectance means unknown; Inf is an error. Whole-array checks
+    # first: the per-point ones below are only needed to name the line.
+    if not (np.isfinite(values[:, :3]).all() and (columns == 3 or not np.isinf(values[:, 3]).any())):
+        finite = np.isfinite(values[:, :3]).all(axis=1)
+        if columns > 3:
+            finite &= ~np.isinf(values[:, 3])
         line = int(point_lines[np.argmin(finite)])
         raise FormatError(path, f"coordinates must be finite numbers, got {line_text(line)!r}", where=where(line))
-    return values
-
-
-def _is_number(token: bytes) -> bool:
-    try:
-        float(token)
-    except ValueError:
-        return False
-    return True
+    return values, header_width
 
 
 def _numeric_lines(path: Path, text: str) -> list[tuple[int, np.ndarray]]:
