@@ -74,3 +74,26 @@ def test_errors_exit_2_with_a_message_naming_the_file(tmp_path, capsys):
 def test_bad_frame_count_is_rejected(tmp_path):
     with pytest.raises(SystemExit):
         main(["simulate", "--frames", "0", "--out", str(tmp_path)])
+
+
+@pytest.mark.parametrize("method", ["diffusion", "layered", "phase"])
+def test_denoise_writes_a_frame_closer_to_truth_and_a_panel(tmp_path, capsys, method):
+    import cv2
+
+    main(["simulate", "--frames", "1", "--out", str(tmp_path / "sim"), "--quiet"])
+    truth = rs.simulate.load_ground_truth(tmp_path / "sim" / "truth" / "truth000000.npz")
+    assert main(["denoise", str(tmp_path / "sim" / "frame000000.npz"), "--method", method,
+                 "--out", str(tmp_path / "den"), "--quiet"]) == 0
+    raw = rs.load(tmp_path / "sim" / "frame000000.npz")[0]
+    smooth = rs.load(tmp_path / "den" / "frame000000.npz")[0]
+    both = raw.valid & smooth.valid & np.isfinite(truth.range)
+    raw_error = np.sqrt(np.mean((raw.range - truth.range)[both] ** 2))
+    smooth_error = np.sqrt(np.mean((smooth.range - truth.range)[both] ** 2))
+    assert smooth_error < 0.8 * raw_error
+    # Removed pixels are the ones the simulator corrupted, mostly.
+    removed = raw.valid & ~smooth.valid
+    assert removed.sum() > 0
+    assert (truth.outlier | truth.mixed)[removed].mean() > 0.5
+    panel = cv2.imread(str(tmp_path / "den" / "frame000000_panel.png"))
+    assert panel is not None and panel.shape[1] == 2 * 176 * 2  # two columns of 2x-enlarged frames
+    assert "outliers removed" in capsys.readouterr().out

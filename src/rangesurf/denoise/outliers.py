@@ -1,0 +1,507 @@
+"""Removal of unreliable readings from range images (thesis Section 2.1).
+
+Three kinds of reading carry no usable range and are set to NaN (no
+return) before smoothing, so that no filter spreads them:
+
+* cut-off readings (`remove_cutoff`): a time-of-flight camera reports
+  exactly its maximum range for anything beyond it (the SR-3000 reports
+  7.5 m, its non-ambiguity range), and the readings close to that limit are
+  the noisiest ones;
+* isolated pixels (`remove_isolated`): salt-and-pepper readings, e.g. from
+  ambient infrared, far from every neighbour;
+* flying (mixed) pixels (`remove_flying_pixels`): pixels whose footprint
+  straddles a depth discontinuity read a range between the two surfaces.
+
+Order: `remove_flying_pixels` first (a clamped reading still marks the far
+side of a jump to the void), then `remove_cutoff`, then `remove_isolated`
+(a spike in the void beyond the cut-off is then left without support).
+
+Every function returns a new ``(H, W)`` float32 range image with the removed
+pixels set to NaN; with ``return_mask=True`` it returns ``(image, removed)``
+where ``removed`` is the ``(H, W)`` bool mask of the pixels it removed
+(valid on input, NaN on output).
+
+References
+----------
+.. [1] The reference thesis, Section 2.1 (cut-off distances, salt-and-pepper
+   filtering) (``shared/reference/thesis.md``).
+.. [2] L. G. Shapiro and G. C. Stockman, "Computer Vision", Prentice Hall,
+   2001 (the thesis's [51]: salt-and-pepper noise).
+.. [3] S. Hussmann, T. Ringbeck and B. Hagebeuker, "A performance review of
+   3D TOF vision systems in comparison to stereo vision systems", in
+   Stereo Vision, InTech, 2008 (mixed pixels at depth discontinuities).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+from numpy.typing import ArrayLike
+
+__all__ = ["remove_cutoff", "remove_isolated", "remove_flying_pixels"]
+
+# 1 / Phi^-1(3/4): median absolute deviation of normal data -> standard deviation.
+_MAD_TO_SIGMA = 1.4826
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+# Flying-pixel test directions (row, column): horizontal, vertical, both diagonals.
+_DIRECTIONS = np.array([[0, 1], [1, 0], [1, 1], [1, -1]], dtype=np.int64)
+
+
+# --------------------------------------------------------------------------
+# Public functions.
+# --------------------------------------------------------------------------
+
+
+def remove_cutoff(
+    range_image: ArrayLike,
+    *,
+    max_range: float,
+    margin: float = 0.0,
+    return_mask: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Invalidate readings at or near the sensor's cut-off distance.
+
+    A time-of-flight sensor reports exactly its maximum range for every
+    surface beyond it (and for rays that hit nothing), so those readings
+    are not measurements. The thesis further proposes to drop readings
+    *close* to the cut-off, the noisiest ones: ``margin`` does that.
+
+    Parameters
+    ----------
+    range_image : (H, W) array_like
+        Ranges in metres (any real dtype), NaN where there is no return.
+    max_range : float
+        The sensor's cut-off in metres, > 0 (``sensor.max_range``; 7.5 m for
+        the SR-3000).
+    margin : float
+        Metres, >= 0 and < ``max_range``: readings ``>= max_range - margin``
+        are removed. The default 0 removes only readings at (or past) the
+        cut-off.
+    return_mask : bool
+        Also return the mask of removed pixels.
+
+    Returns
+    -------
+    image : (H, W) float32
+        The ranges with the removed readings set to NaN.
+    removed : (H, W) bool
+        Only with ``return_mask``: True where a valid reading was removed.
+
+    Raises
+    ------
+    ValueError
+        If the image is not 2-D and real, contains Inf, or ``max_range`` or
+        ``margin`` is out of range.
+
+    References
+    ----------
+    .. [1] The reference thesis, Section 2.1 ("cut-off distances").
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> image = np.array([[2.0, 7.5], [7.3, np.nan]])
+    >>> remove_cutoff(image, max_range=7.5)
+    array([[2. , nan],
+           [7.3, nan]], dtype=float32)
+    >>> remove_cutoff(image, max_range=7.5, margin=0.5, return_mask=True)[1]
+    array([[False,  True],
+           [ True, False]])
+    """
+    image = _check_range_image(range_image)
+    max_range = float(max_range)
+    margin = float(margin)
+    if not (math.isfinite(max_range) and max_range > 0):
+        raise ValueError(f"max_range must be finite and > 0, got {max_range}")
+    if not (math.isfinite(margin) and 0.0 <= margin < max_range):
+        raise ValueError(f"margin must be in [0, max_range={max_range}), got {margin}")
+    with np.errstate(invalid="ignore"):
+        removed = image >= np.float32(max_range - margin) if margin > 0 else image >= np.float32(max_range)
+    return _finish(image, removed, return_mask)
+
+
+def remove_isolated(
+    range_image: ArrayLike,
+    *,
+    threshold: float = 4.0,
+    range_sigma: ArrayLike | float | None = None,
+    radius: int = 1,
+    min_support: int = 2,
+    return_mask: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Invalidate isolated readings (salt-and-pepper noise).
+
+    A valid pixel ``p`` of range ``r`` is removed when both
+
+    * ``|r - median| > threshold * sigma_p``, where ``median`` is the median
+      of the valid neighbours in the ``(2 radius + 1)**2`` window around it
+      (``p`` itself excluded), and
+    * fewer than ``min_support`` of those neighbours lie within
+      ``threshold * sigma_p`` of ``r`` (a pixel on a thin structure or a
+      surface's corner keeps a few supporting neighbours; a spike has none).
+
+    A pixel without any valid neighbour has no support and is removed (a
+    lone return among no-returns, e.g. a spike in the sky beyond the
+    cut-off once `remove_cutoff` has run; a 1 x 1 image loses its pixel).
+
+    Parameters
+    ----------
+    range_image : (H, W) array_like
+        Ranges in metres (any real dtype), NaN where there is no return.
+    threshold : float
+        ``k``, > 0: how many noise standard deviations make a reading
+        disagree with another.
+    range_sigma : (H, W) array_like or float, optional
+        Standard deviation (metres) of each reading, e.g.
+        ``sensor.range_sigma(image, intensity)``; a number is one sigma for
+        the whole frame. Default: noise proportional to range,
+        ``sigma_p = s * r_p``, with ``s`` estimated robustly from the frame
+        (``1.4826 * MAD / sqrt(2)`` of the relative differences of
+        4-neighbours).
+    radius : int
+        Window half-size, 1 (3 x 3) or 2 (5 x 5), ...; >= 1.
+    min_support : int
+        ``m``, >= 1: neighbours needed within ``threshold * sigma_p`` to keep
+        a pixel.
+    return_mask : bool
+        Also return the mask of removed pixels.
+
+    Returns
+    -------
+    image : (H, W) float32
+        The ranges with isolated readings set to NaN.
+    removed : (H, W) bool
+        Only with ``return_mask``: True where a valid reading was removed.
+
+    Raises
+    ------
+    ValueError
+        If the image is not 2-D and real or contains Inf, ``range_sigma``
+        has the wrong shape or is not positive where there is a return, or
+        an option is out of range.
+
+    Notes
+    -----
+    The test runs in a Numba kernel (compiled once, cached on disk) in
+    float64; ``_isolated_reference`` is its plain NumPy twin. Readings that
+    land within ``threshold * sigma`` of the true surface by chance are
+    indistinguishable from good ones and stay.
+
+    References
+    ----------
+    .. [1] The reference thesis, Section 2.1 (salt-and-pepper filtering).
+    .. [2] L. G. Shapiro and G. C. Stockman, "Computer Vision", Prentice
+       Hall, 2001, Chapter 5.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> image = np.full((5, 5), 2.0, np.float32)
+    >>> image[2, 2] = 5.0
+    >>> cleaned, removed = remove_isolated(image, range_sigma=0.01, return_mask=True)
+    >>> bool(np.isnan(cleaned[2, 2])), int(removed.sum())
+    (True, 1)
+    """
+    image = _check_range_image(range_image)
+    threshold = _check_positive(threshold, "threshold")
+    radius = _check_count(radius, "radius")
+    min_support = _check_count(min_support, "min_support")
+    sigma = _sigma_image(image, range_sigma)
+    removed = _isolated_kernel(image, sigma, threshold, radius, min_support)
+    return _finish(image, removed, return_mask)
+
+
+def remove_flying_pixels(
+    range_image: ArrayLike,
+    *,
+    jump: float = 0.05,
+    threshold: float = 3.0,
+    slope_ratio: float = 3.0,
+    range_sigma: ArrayLike | float | None = None,
+    return_mask: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Invalidate flying (mixed) pixels at depth discontinuities.
+
+    A pixel whose footprint straddles a depth discontinuity reads a blend of
+    the two surfaces' ranges: a point floating in the empty space between
+    them. The criterion ("between its neighbours across a jump") checks the
+    two neighbours ``a`` and ``b`` on opposite sides of pixel ``p`` along the
+    row, the column and both diagonals; ``p`` (range ``r``) is removed when,
+    along any of the four lines,
+
+    1. ``a`` and ``b`` are separated by a jump: ``|a - b| > jump * min(a, b)``;
+    2. ``r`` lies between them and is far from both:
+       ``min(a, b) + t < r < max(a, b) - t`` with ``t = threshold * sigma_p``;
+    3. the jump is not a steep surface seen at a grazing angle:
+       ``|a - b| > slope_ratio * max(|a - a2|, |b - b2|)``, where ``a2`` and
+       ``b2`` are the next pixels outwards (a missing one counts as 0; with
+       both missing the line is not tested). On a
+       plane the gap across ``p`` is about twice the step beyond it; at a
+       discontinuity the surfaces either side are locally flat.
+
+    Parameters
+    ----------
+    range_image : (H, W) array_like
+        Ranges in metres (any real dtype), NaN where there is no return.
+    jump : float
+        Relative range jump, > 0, that makes a depth discontinuity.
+    threshold : float
+        ``k``, > 0: a pixel must lie more than ``k * sigma_p`` from both
+        surfaces.
+    slope_ratio : float
+        > 2 (a plane gives about 2): how much larger than the step beyond
+        either neighbour the jump must be.
+    range_sigma : (H, W) array_like or float, optional
+        Standard deviation (metres) of each reading, as in `remove_isolated`
+        (default: proportional to range, estimated from the frame).
+    return_mask : bool
+        Also return the mask of removed pixels.
+
+    Returns
+    -------
+    image : (H, W) float32
+        The ranges with flying pixels set to NaN.
+    removed : (H, W) bool
+        Only with ``return_mask``: True where a valid reading was removed.
+
+    Raises
+    ------
+    ValueError
+        If the image is not 2-D and real or contains Inf, ``range_sigma``
+        has the wrong shape or is not positive where there is a return, or
+        an option is out of range.
+
+    Notes
+    -----
+    The neighbours are those of the input: a flying pixel next to another
+    flying pixel is still found when the pair's outer neighbours are on the
+    two surfaces along some line. Mixed pixels whose blend lies within
+    ``threshold * sigma`` of one surface are kept (they are nearly right).
+    The angle criterion (the angle between the viewing ray and the line to a
+    neighbour point below a few degrees) needs the rays and also removes
+    surfaces seen at grazing angles; the test above works on the range image
+    alone. The test runs in a Numba kernel (compiled once, cached on disk)
+    in float64; ``_flying_reference`` is its plain NumPy twin.
+
+    References
+    ----------
+    .. [1] S. Hussmann, T. Ringbeck and B. Hagebeuker, "A performance review
+       of 3D TOF vision systems in comparison to stereo vision systems",
+       in Stereo Vision, InTech, 2008.
+    .. [2] The reference thesis, Section 2.1.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> image = np.where(np.arange(8) < 4, 2.0, 3.0) * np.ones((5, 1))
+    >>> image[:, 4] = 2.5  # half foreground, half background
+    >>> removed = remove_flying_pixels(image, range_sigma=0.01, return_mask=True)[1]
+    >>> bool(removed[:, 4].all()), int(removed.sum())
+    (True, 5)
+    """
+    image = _check_range_image(range_image)
+    jump = _check_positive(jump, "jump")
+    threshold = _check_positive(threshold, "threshold")
+    slope_ratio = _check_positive(slope_ratio, "slope_ratio")
+    if slope_ratio <= 2.0:
+        raise ValueError(f"slope_ratio must be > 2 (a plane gives about 2), got {slope_ratio}")
+    sigma = _sigma_image(image, range_sigma)
+    removed = _flying_kernel(image, sigma, jump, threshold, slope_ratio, _DIRECTIONS)
+    return _finish(image, removed, return_mask)
+
+
+# --------------------------------------------------------------------------
+# Input checks and helpers.
+# --------------------------------------------------------------------------
+
+
+def _check_range_image(range_image: ArrayLike) -> np.ndarray:
+    image = np.asarray(range_image)
+    if image.ndim != 2:
+        raise ValueError(f"range image must be 2-D (H, W), got shape {image.shape}")
+    if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
+        raise ValueError(f"range image must be real-valued, got dtype {image.dtype}")
+    image = np.ascontiguousarray(image, dtype=np.float32)
+    if np.isinf(image).any():
+        raise ValueError("range image contains Inf; mark missing returns with NaN")
+    return image
+
+
+def _check_positive(value: float, name: str) -> float:
+    value = float(value)
+    if not (math.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be finite and > 0, got {value}")
+    return value
+
+
+def _check_count(value: int, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+    return int(value)
+
+
+def _sigma_image(image: np.ndarray, range_sigma: ArrayLike | float | None) -> np.ndarray:
+    """Per-pixel noise standard deviation (float64, metres); any value where ``image`` is NaN."""
+    valid = ~np.isnan(image)
+    if range_sigma is None:
+        return _relative_noise(image) * image.astype(np.float64)
+    if np.ndim(range_sigma) == 0:
+        sigma = float(range_sigma)
+        if not (math.isfinite(sigma) and sigma > 0):
+            raise ValueError(f"range_sigma must be finite and > 0, got {range_sigma}")
+        return np.full(image.shape, sigma)
+    sigma = np.asarray(range_sigma, dtype=np.float64)
+    if sigma.shape != image.shape:
+        raise ValueError(f"range_sigma shape {sigma.shape} does not match range image shape {image.shape}")
+    with np.errstate(invalid="ignore"):
+        bad = valid & ~(np.isfinite(sigma) & (sigma > 0))
+    if bad.any():
+        raise ValueError(f"range_sigma must be finite and > 0 wherever there is a return; {int(bad.sum())} pixels are not")
+    return np.ascontiguousarray(sigma)
+
+
+def _relative_noise(image: np.ndarray) -> float:
+    """Robust relative noise ``sigma / range`` of one reading, from 4-neighbour differences."""
+    values = image.astype(np.float64)
+    ratios = [
+        np.abs(values[:, 1:] - values[:, :-1]) / np.fmin(values[:, 1:], values[:, :-1]),
+        np.abs(values[1:] - values[:-1]) / np.fmin(values[1:], values[:-1]),
+    ]
+    ratios = np.concatenate([r[np.isfinite(r)] for r in ratios])
+    if ratios.size == 0:
+        return 0.0
+    # Median of |difference of two readings| -> sigma of one reading.
+    return _MAD_TO_SIGMA * float(np.median(ratios)) / math.sqrt(2.0)
+
+
+def _finish(image: np.ndarray, removed: np.ndarray, return_mask: bool):
+    removed = removed & ~np.isnan(image)
+    result = image.copy()
+    result[removed] = np.nan
+    return (result, removed) if return_mask else result
+
+
+# --------------------------------------------------------------------------
+# Kernels and their NumPy references.
+# --------------------------------------------------------------------------
+
+
+@numba.njit(**_JIT)
+def _isolated_kernel(image, sigma, threshold, radius, min_support):  # pragma: no cover - compiled
+    height, width = image.shape
+    removed = np.zeros((height, width), np.bool_)
+    buffer = np.empty((2 * radius + 1) ** 2, np.float64)
+    for i in range(height):
+        for j in range(width):
+            centre = np.float64(image[i, j])
+            if np.isnan(centre):
+                continue
+            tolerance = threshold * sigma[i, j]
+            count = 0
+            support = 0
+            for di in range(-radius, radius + 1):
+                row = i + di
+                if row < 0 or row >= height:
+                    continue
+                for dj in range(-radius, radius + 1):
+                    col = j + dj
+                    if col < 0 or col >= width or (di == 0 and dj == 0):
+                        continue
+                    value = np.float64(image[row, col])
+                    if np.isnan(value):
+                        continue
+                    buffer[count] = value
+                    count += 1
+                    if abs(value - centre) <= tolerance:
+                        support += 1
+            if support >= min_support:
+                continue
+            if count == 0 or abs(centre - np.median(buffer[:count])) > tolerance:
+                removed[i, j] = True
+    return removed
+
+
+def _isolated_reference(image, sigma, threshold, radius, min_support):
+    """Plain NumPy twin of `_isolated_kernel`."""
+    size = 2 * radius + 1
+    values = image.astype(np.float64)
+    padded = np.pad(values, radius, constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size)).reshape(image.shape + (size * size,))
+    neighbours = np.delete(windows, size * size // 2, axis=-1)
+    tolerance = (threshold * sigma)[..., None]
+    with np.errstate(invalid="ignore"):
+        support = (np.abs(neighbours - values[..., None]) <= tolerance).sum(axis=-1)
+    count = (~np.isnan(neighbours)).sum(axis=-1)
+    median = np.full(image.shape, np.nan)
+    has = count > 0
+    median[has] = np.nanmedian(neighbours[has], axis=-1)
+    with np.errstate(invalid="ignore"):
+        far = np.abs(values - median) > tolerance[..., 0]
+    return ~np.isnan(values) & (support < min_support) & (far | ~has)
+
+
+@numba.njit(**_JIT)
+def _flying_kernel(image, sigma, jump, threshold, slope_ratio, directions):  # pragma: no cover - compiled
+    height, width = image.shape
+    removed = np.zeros((height, width), np.bool_)
+    for i in range(height):
+        for j in range(width):
+            centre = np.float64(image[i, j])
+            if np.isnan(centre):
+                continue
+            tolerance = threshold * sigma[i, j]
+            for d in range(directions.shape[0]):
+                di = directions[d, 0]
+                dj = directions[d, 1]
+                ia, ja, ib, jb = i - di, j - dj, i + di, j + dj
+                if ia < 0 or ib >= height or min(ja, jb) < 0 or max(ja, jb) >= width:
+                    continue
+                a = np.float64(image[ia, ja])
+                b = np.float64(image[ib, jb])
+                if np.isnan(a) or np.isnan(b):
+                    continue
+                low = min(a, b)
+                high = max(a, b)
+                gap = high - low
+                if not (gap > jump * low and low + tolerance < centre < high - tolerance):
+                    continue
+                outer = 0.0
+                known = False
+                ia2, ja2, ib2, jb2 = i - 2 * di, j - 2 * dj, i + 2 * di, j + 2 * dj
+                if 0 <= ia2 < height and 0 <= ja2 < width and not np.isnan(image[ia2, ja2]):
+                    outer = max(outer, abs(a - np.float64(image[ia2, ja2])))
+                    known = True
+                if 0 <= ib2 < height and 0 <= jb2 < width and not np.isnan(image[ib2, jb2]):
+                    outer = max(outer, abs(b - np.float64(image[ib2, jb2])))
+                    known = True
+                if known and gap > slope_ratio * outer:
+                    removed[i, j] = True
+                    break
+    return removed
+
+
+def _flying_reference(image, sigma, jump, threshold, slope_ratio):
+    """Plain NumPy twin of `_flying_kernel`."""
+    values = np.pad(image.astype(np.float64), 2, constant_values=np.nan)
+    height, width = image.shape
+    centre = values[2:-2, 2:-2]
+    tolerance = threshold * sigma
+
+    def shifted(di, dj):
+        return values[2 + di : 2 + di + height, 2 + dj : 2 + dj + width]
+
+    removed = np.zeros(image.shape, bool)
+    with np.errstate(invalid="ignore"):
+        for di, dj in _DIRECTIONS.tolist():
+            a, b = shifted(-di, -dj), shifted(di, dj)
+            a2, b2 = shifted(-2 * di, -2 * dj), shifted(2 * di, 2 * dj)
+            low, high = np.fmin(a, b), np.fmax(a, b)
+            gap = high - low
+            outer_a, outer_b = np.abs(a - a2), np.abs(b - b2)
+            known = ~np.isnan(outer_a) | ~np.isnan(outer_b)
+            outer = np.fmax(np.nan_to_num(outer_a), np.nan_to_num(outer_b))
+            between = (low + tolerance < centre) & (centre < high - tolerance)
+            removed |= (gap > jump * low) & between & known & (gap > slope_ratio * outer)
+    return removed & ~np.isnan(image)
