@@ -2,10 +2,13 @@
 
 >>> import rangesurf as rs
 >>> frames = rs.load("scans/")                      # doctest: +SKIP
->>> frames, truth = rs.simulate.simulate_sequence("arena", "sr3000", n_frames=3)  # doctest: +SKIP
+>>> frames, truths = rs.simulate.simulate_sequence("arena", "sr3000", n_frames=1)
+>>> smooth = rs.denoise.anisotropic_diffusion(frames[0].range)
+>>> smooth.shape
+(144, 176)
 """
 
-from rangesurf import simulate
+from rangesurf import denoise, edges, simulate
 from rangesurf.frame import (
     SENSORS,
     PinholeProjection,
@@ -29,6 +32,8 @@ __all__ = [
     "RangeNoiseModel",
     "SensorModel",
     "SweptFanProjection",
+    "denoise",
+    "edges",
     "get_sensor",
     "load",
     "save",

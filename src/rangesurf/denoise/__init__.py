@@ -9,6 +9,7 @@ ground truth (`metrics`); `denoise_range` joins them for one frame.
 
 import numpy as np
 
+from rangesurf.denoise import metrics
 from rangesurf.denoise.diffusion import (
     CONDUCTIONS,
     MAX_STABLE_STEP,
@@ -34,6 +35,7 @@ __all__ = [
     "denoise_range",
     "layer_weights",
     "layered_denoise",
+    "metrics",
     "phase_preserving_denoise",
     "remove_cutoff",
     "remove_flying_pixels",
