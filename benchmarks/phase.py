@@ -32,7 +32,12 @@ from scipy import ndimage
 
 import rangesurf as rs
 from rangesurf.bench import machine_description, time_call
-from rangesurf.denoise.phase import PHASE_PRESETS, _kovesi_band_sum, phase_preserving_denoise
+from rangesurf.denoise.metrics import resolved_jump_ratios
+from rangesurf.denoise.phase import (
+    PHASE_PRESETS,
+    _kovesi_band_sum,
+    phase_preserving_denoise,
+)
 from rangesurf.simulate import SimulationNoise
 
 SIZES = {"176x144 (SR-3000)": "sr3000", "640x480 (Kinect)": "kinect"}
@@ -104,18 +109,7 @@ def _rmse(estimate: np.ndarray, frame: rs.RangeFrame, truth) -> float:
 
 
 def _jump_ratios(estimate: np.ndarray, truth) -> np.ndarray:
-    """Estimated / true jump over neighbours whose true ranges differ by > 10 % and > 5 noise sigmas."""
-    ratios = []
-    east = ((slice(None), slice(None, -1)), (slice(None), slice(1, None)))
-    south = ((slice(None, -1),), (slice(1, None),))
-    for first, second in (east, south):
-        true_jump = np.abs(truth.range[first] - truth.range[second])
-        noise = np.hypot(truth.sigma[first], truth.sigma[second])
-        with np.errstate(invalid="ignore"):
-            resolved = (true_jump > 0.1 * np.minimum(truth.range[first], truth.range[second])) & (true_jump > 5 * noise)
-        resolved &= np.isfinite(estimate[first]) & np.isfinite(estimate[second])
-        ratios.append(np.abs(estimate[first] - estimate[second])[resolved] / true_jump[resolved])
-    return np.concatenate(ratios)
+    return resolved_jump_ratios(estimate, truth.range, truth.sigma)
 
 
 def benchmark_quality(*, n_frames: int = N_QUALITY_FRAMES, seed: int = 3) -> list[dict]:

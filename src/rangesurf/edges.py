@@ -55,6 +55,8 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from rangesurf._checks import check_range_image
+
 __all__ = [
     "EDGE_METHODS",
     "EdgeScores",
@@ -95,17 +97,6 @@ _OPPOSITE_PAIRS = [((dr, dc), (-dr, -dc)) for dr, dc in _RING if dr > 0 or (dr =
 # --------------------------------------------------------------------------
 # Input checks.
 # --------------------------------------------------------------------------
-
-
-def _check_image(image: Any, name: str = "range image") -> np.ndarray:
-    array = np.asarray(image)
-    if array.ndim != 2:
-        raise ValueError(f"{name} must be 2-D (H, W), got shape {array.shape}")
-    if array.dtype == bool or not (np.issubdtype(array.dtype, np.integer) or np.issubdtype(array.dtype, np.floating)):
-        raise ValueError(f"{name} must be a real numeric array (float with NaN where invalid), got dtype {array.dtype}")
-    if np.issubdtype(array.dtype, np.floating) and np.isinf(array).any():
-        raise ValueError(f"{name} contains Inf; mark missing returns with NaN")
-    return array
 
 
 def _check_edge_map(edges: Any, name: str = "edge map") -> np.ndarray:
@@ -204,7 +195,7 @@ def normalize_range(range_image: np.ndarray, *, valid_range: tuple[float, float]
     array([[  0, 128],
            [255,   0]], dtype=uint8)
     """
-    image = _check_image(range_image)
+    image = check_range_image(range_image, dtype=None)
     limits = _check_valid_range(valid_range)
     grey = _grey_levels(image, np.isfinite(image), limits)
     return np.rint(grey).astype(np.uint8)
@@ -504,7 +495,7 @@ def detect_edges(
     >>> np.flatnonzero(detect_edges(depth, method="prewitt").any(axis=0)).tolist()
     [9]
     """
-    image = _check_image(range_image)
+    image = check_range_image(range_image, dtype=None)
     if method not in EDGE_METHODS:
         raise ValueError(f"unknown edge method {method!r}; expected one of {', '.join(EDGE_METHODS)}")
     if method == "canny":
@@ -743,7 +734,7 @@ def combined_edges(
         if branch.dtype == bool:
             edges = _check_edge_map(branch, name)
         else:
-            edges = detect_edges(_check_image(branch, name), **detect_options)
+            edges = detect_edges(check_range_image(branch, name, dtype=None), **detect_options)
         maps.append(clean_edges(edges, border_width=border_width, continuity=continuity) if clean else edges)
     return maps[0] | maps[1]
 
@@ -809,7 +800,7 @@ def true_depth_edges(
     >>> true_depth_edges(depth, side="near", missing_range=7.5).astype(int).tolist()
     [[0, 1, 0, 1, 0]]
     """
-    truth = _check_image(truth_range, "true range image").astype(np.float64)
+    truth = check_range_image(truth_range, "true range image", dtype=None).astype(np.float64)
     if isinstance(relative_jump, bool) or not isinstance(relative_jump, (int, float, np.integer, np.floating)):
         raise ValueError(f"relative_jump must be a number, got {relative_jump!r}")
     if not (math.isfinite(relative_jump) and relative_jump > 0):

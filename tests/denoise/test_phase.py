@@ -239,8 +239,8 @@ def test_integer_input_and_input_not_modified():
     [
         (np.zeros((4, 4, 3)), r"2-D \(H, W\), got shape \(4, 4, 3\)"),
         (np.zeros(5), "2-D"),
-        (np.array([["a", "b"]]), "real numbers"),
-        (np.zeros((3, 3), complex), "real numbers"),
+        (np.array([["a", "b"]]), "real numeric array"),
+        (np.zeros((3, 3), complex), "real numeric array"),
         (np.array([[1.0, np.inf], [1.0, 1.0]]), "Inf"),
     ],
 )

@@ -54,6 +54,8 @@ from numba import types
 from numba.extending import intrinsic
 from numpy.typing import ArrayLike
 
+from rangesurf._checks import check_range_image
+
 __all__ = [
     "anisotropic_diffusion",
     "CONDUCTIONS",
@@ -223,7 +225,7 @@ def anisotropic_diffusion(
     >>> bool(np.all(smooth[:, 32] - smooth[:, 31] > 0.9))
     True
     """
-    image = _check_range_image(range_image)
+    image = check_range_image(range_image)
     iterations = _check_iterations(iterations)
     step = _check_step(step)
     code = _check_conduction(conduction)
@@ -337,15 +339,6 @@ class DiffusionPreset:
 # --------------------------------------------------------------------------
 # Input checks.
 # --------------------------------------------------------------------------
-
-
-def _check_range_image(range_image: ArrayLike) -> np.ndarray:
-    image = np.asarray(range_image)
-    if image.ndim != 2:
-        raise ValueError(f"range image must be 2-D (H, W), got shape {image.shape}")
-    if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
-        raise ValueError(f"range image must be real numbers (integer or float), got dtype {image.dtype}")
-    return np.ascontiguousarray(image, dtype=np.float32)
 
 
 def _check_iterations(iterations: int) -> int:

@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf.denoise.diffusion import anisotropic_diffusion
-from rangesurf.denoise.outliers import _check_range_image
+from rangesurf._checks import check_range_image
 
 __all__ = ["layered_denoise", "layer_weights"]
 
@@ -122,7 +122,7 @@ def layered_denoise(
     >>> rms(smooth) < 0.6 * rms(noisy)
     True
     """
-    image = _check_range_image(range_image)
+    image = check_range_image(range_image)
     overlap = float(overlap)
     if not (math.isfinite(overlap) and 0.0 <= overlap < 1.0):
         raise ValueError(f"overlap must be in [0, 1), got {overlap}")

@@ -40,6 +40,8 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
+from rangesurf._checks import check_range_image
+
 __all__ = ["remove_cutoff", "remove_isolated", "remove_flying_pixels"]
 
 # 1 / Phi^-1(3/4): median absolute deviation of normal data -> standard deviation.
@@ -110,7 +112,7 @@ def remove_cutoff(
     array([[False,  True],
            [ True, False]])
     """
-    image = _check_range_image(range_image)
+    image = check_range_image(range_image)
     max_range = float(max_range)
     margin = float(margin)
     if not (math.isfinite(max_range) and max_range > 0):
@@ -204,7 +206,7 @@ def remove_isolated(
     >>> bool(np.isnan(cleaned[2, 2])), int(removed.sum())
     (True, 1)
     """
-    image = _check_range_image(range_image)
+    image = check_range_image(range_image)
     threshold = _check_positive(threshold, "threshold")
     radius = _check_count(radius, "radius")
     min_support = _check_count(min_support, "min_support")
@@ -301,7 +303,7 @@ def remove_flying_pixels(
     >>> bool(removed[:, 4].all()), int(removed.sum())
     (True, 5)
     """
-    image = _check_range_image(range_image)
+    image = check_range_image(range_image)
     jump = _check_positive(jump, "jump")
     threshold = _check_positive(threshold, "threshold")
     slope_ratio = _check_positive(slope_ratio, "slope_ratio")
@@ -315,18 +317,6 @@ def remove_flying_pixels(
 # --------------------------------------------------------------------------
 # Input checks and helpers.
 # --------------------------------------------------------------------------
-
-
-def _check_range_image(range_image: ArrayLike) -> np.ndarray:
-    image = np.asarray(range_image)
-    if image.ndim != 2:
-        raise ValueError(f"range image must be 2-D (H, W), got shape {image.shape}")
-    if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
-        raise ValueError(f"range image must be real-valued, got dtype {image.dtype}")
-    image = np.ascontiguousarray(image, dtype=np.float32)
-    if np.isinf(image).any():
-        raise ValueError("range image contains Inf; mark missing returns with NaN")
-    return image
 
 
 def _check_positive(value: float, name: str) -> float:

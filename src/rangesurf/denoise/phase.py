@@ -51,6 +51,8 @@ import scipy.fft
 from numpy.typing import ArrayLike
 from scipy import ndimage
 
+from rangesurf._checks import check_range_image
+
 __all__ = ["PHASE_PRESETS", "phase_preserving_denoise"]
 
 #: The thesis's two settings (Section 3.1) as ``(noise_std_multiplier,
@@ -191,7 +193,7 @@ def phase_preserving_denoise(
     >>> clean.dtype, clean.shape
     (dtype('float32'), (48, 64))
     """
-    image = _check_range_image(range_image)
+    image = check_range_image(range_image)
     k, n_scales, ratio, n_orientations = _resolve_options(preset, noise_std_multiplier, scales, mult, orientations)
     min_wavelength, sigma_onf, softness = _check_filter_options(min_wavelength, sigma_onf, softness)
 
@@ -213,19 +215,6 @@ def phase_preserving_denoise(
 # --------------------------------------------------------------------------
 # Input checks.
 # --------------------------------------------------------------------------
-
-
-def _check_range_image(range_image: ArrayLike) -> np.ndarray:
-    image = np.asarray(range_image)
-    if image.ndim != 2:
-        raise ValueError(f"range image must be 2-D (H, W), got shape {image.shape}")
-    if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
-        raise ValueError(f"range image must be real numbers (integer or float), got dtype {image.dtype}")
-    image = np.ascontiguousarray(image, dtype=np.float32)
-    n_infinite = int(np.count_nonzero(np.isinf(image)))
-    if n_infinite:
-        raise ValueError(f"range image contains {n_infinite} Inf values; mark missing returns with NaN")
-    return image
 
 
 def _is_integer(value) -> bool:
@@ -379,7 +368,7 @@ def _kovesi_band_sum(image: ArrayLike, *, k: float, scales: int, mult: float, or
     ``epsilon`` is added to the amplitude in the shrinkage ``T * EO / (|EO| + epsilon)``,
     as in Kovesi's code (`phase_preserving_denoise` uses 0).
     """
-    image = _check_range_image(image)
+    image = check_range_image(image)
     bank = _filter_bank(image.shape, scales, float(mult), orientations, float(min_wavelength), float(sigma_onf))
     offset = np.float32(np.mean(image, dtype=np.float64))
     return _band_sums(image - offset, bank, k, softness, epsilon)[1]

@@ -1,0 +1,36 @@
+"""Input checks shared by the stage functions (one wording for one mistake)."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+__all__ = ["check_range_image"]
+
+
+def check_range_image(range_image: Any, name: str = "range image", *, dtype: Any = np.float32) -> np.ndarray:
+    """Return ``range_image`` as a 2-D real array, or raise a ValueError saying what is wrong.
+
+    Parameters
+    ----------
+    range_image : array_like
+        Expected ``(H, W)``, integer or float, NaN (not Inf) where there is
+        no return.
+    name : str
+        What to call it in messages ("denoised range image").
+    dtype : dtype or None
+        Convert to this dtype (C-contiguous); ``None`` keeps the input's.
+    """
+    image = np.asarray(range_image)
+    if image.ndim != 2:
+        raise ValueError(f"{name} must be 2-D (H, W), got shape {image.shape}")
+    if not (np.issubdtype(image.dtype, np.integer) or np.issubdtype(image.dtype, np.floating)):
+        raise ValueError(f"{name} must be a real numeric array (float with NaN where invalid), got dtype {image.dtype}")
+    if dtype is not None:
+        image = np.ascontiguousarray(image, dtype=dtype)
+    if np.issubdtype(image.dtype, np.floating):
+        n_infinite = int(np.count_nonzero(np.isinf(image)))
+        if n_infinite:
+            raise ValueError(f"{name} contains Inf ({n_infinite} values); mark missing returns with NaN")
+    return image
