@@ -135,14 +135,18 @@ def remove_isolated(
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Invalidate isolated readings (salt-and-pepper noise).
 
-    A valid pixel ``p`` of range ``r`` is removed when both
+    A valid pixel ``p`` of range ``r`` is removed when all of
 
     * ``|r - median| > threshold * sigma_p``, where ``median`` is the median
       of the valid neighbours in the ``(2 radius + 1)**2`` window around it
-      (``p`` itself excluded), and
+      (``p`` itself excluded),
     * fewer than ``min_support`` of those neighbours lie within
       ``threshold * sigma_p`` of ``r`` (a pixel on a thin structure or a
-      surface's corner keeps a few supporting neighbours; a spike has none).
+      surface's corner keeps a few supporting neighbours; a spike has none),
+    * along no row, column or diagonal does ``r`` lie between its two
+      opposite neighbours (within ``threshold * sigma_p``): a smooth surface
+      seen at a grazing angle, or curving, has no neighbour within the noise
+      and a biased median, but it continues a line; a spike does not.
 
     A pixel without any valid neighbour has no support and is removed (a
     lone return among no-returns, e.g. a spike in the sky beyond the
@@ -408,9 +412,35 @@ def _isolated_kernel(image, sigma, threshold, radius, min_support):  # pragma: n
                         support += 1
             if support >= min_support:
                 continue
-            if count == 0 or abs(centre - np.median(buffer[:count])) > tolerance:
-                removed[i, j] = True
+            if count > 0 and abs(centre - np.median(buffer[:count])) <= tolerance:
+                continue
+            if _continues_a_line(image, i, j, tolerance):
+                continue
+            removed[i, j] = True
     return removed
+
+
+@numba.njit(**_JIT)
+def _continues_a_line(image, i, j, tolerance):  # pragma: no cover - compiled
+    """True when pixel (i, j) lies between its two opposite neighbours along a row, column or diagonal.
+
+    A smooth surface seen at a grazing angle has no neighbour within the
+    noise of a pixel, and its range grows non-linearly along the slope, so
+    the median test alone removes it; a spike lies outside its neighbours
+    along every line.
+    """
+    height, width = image.shape
+    centre = image[i, j]
+    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        ai, aj, bi, bj = i - di, j - dj, i + di, j + dj
+        if ai < 0 or bi >= height or min(aj, bj) < 0 or max(aj, bj) >= width:
+            continue
+        a, b = image[ai, aj], image[bi, bj]
+        if np.isnan(a) or np.isnan(b):
+            continue
+        if min(a, b) - tolerance <= centre <= max(a, b) + tolerance:
+            return True
+    return False
 
 
 def _isolated_reference(image, sigma, threshold, radius, min_support):
@@ -429,7 +459,20 @@ def _isolated_reference(image, sigma, threshold, radius, min_support):
     median[has] = np.nanmedian(neighbours[has], axis=-1)
     with np.errstate(invalid="ignore"):
         far = np.abs(values - median) > tolerance[..., 0]
-    return ~np.isnan(values) & (support < min_support) & (far | ~has)
+    return ~np.isnan(values) & (support < min_support) & (far | ~has) & ~_continues_a_line_reference(values, tolerance[..., 0])
+
+
+def _continues_a_line_reference(values, tolerance):
+    """Plain NumPy twin of `_continues_a_line` for every pixel at once."""
+    padded = np.pad(values, 1, constant_values=np.nan)
+    height, width = values.shape
+    continues = np.zeros(values.shape, bool)
+    for di, dj in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        a = padded[1 - di : 1 - di + height, 1 - dj : 1 - dj + width]
+        b = padded[1 + di : 1 + di + height, 1 + dj : 1 + dj + width]
+        with np.errstate(invalid="ignore"):
+            continues |= (np.fmin(a, b) - tolerance <= values) & (values <= np.fmax(a, b) + tolerance) & ~np.isnan(a) & ~np.isnan(b)
+    return continues
 
 
 @numba.njit(**_JIT)
