@@ -54,12 +54,13 @@ def test_info_text_output(tmp_path, capsys):
 def test_demo_reports_errors_consistent_with_the_sensor_model(tmp_path, capsys):
     assert main(["demo", "--frames", "2", "--out", str(tmp_path / "demo"), "--quiet"]) == 0
     lines = capsys.readouterr().out.splitlines()
-    rows = [line.split() for line in lines if line.strip()[:1].isdigit()]
+    rows = [line.replace("|", " ").split() for line in lines if line.strip()[:1].isdigit()]
     assert len(rows) == 2
     for row in rows:
-        median_error_mm, median_sigma_mm = float(row[6]), float(row[8])
+        median_error_mm, rmse_mm, median_sigma_mm, denoised_rmse_mm = float(row[6]), float(row[7]), float(row[8]), float(row[9])
         # Median |e| of a zero-mean spread sigma is about 0.67 sigma.
         assert 0.3 * median_sigma_mm < median_error_mm < 1.2 * median_sigma_mm
+        assert denoised_rmse_mm < 0.75 * rmse_mm
 
 
 def test_errors_exit_2_with_a_message_naming_the_file(tmp_path, capsys):

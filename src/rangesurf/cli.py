@@ -135,22 +135,28 @@ def _command_demo(args: argparse.Namespace) -> int:
     if len(loaded) != len(frames):
         raise RuntimeError(f"read back {len(loaded)} frames from {out}, wrote {len(frames)}")
     print(f"  read back {len(loaded)} frames with rangesurf.load({str(out)!r})")
+    from rangesurf import denoise
+
     print()
-    print("  frame  valid %  surfaces  mixed  spikes  clamped  range error vs truth [mm]  sensor model [mm]")
-    print("                                                     median |e|     RMS          median sigma")
+    print("  frame  valid %  surfaces  mixed  spikes  clamped |  range error vs truth [mm]  | model  | denoised")
+    print("                                                   |  median |e|   RMSE          | sigma  | RMSE [mm]  removed")
     for index, (frame, truth) in enumerate(zip(loaded, truths)):
         clean = frame.valid & np.isfinite(truth.range) & ~truth.mixed & ~truth.outlier & ~truth.clamped
         error = (frame.range - truth.range)[clean]
+        smooth = denoise.denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity)
+        kept = clean & np.isfinite(smooth)
         surfaces = len(np.unique(truth.surface_id[truth.surface_id > 0]))
         print(
             f"  {index:5d}  {100 * frame.valid.mean():6.1f}  {surfaces:8d}  {int(truth.mixed.sum()):5d}  "
-            f"{int(truth.outlier.sum()):6d}  {int(truth.clamped.sum()):7d}  "
-            f"{1000 * np.median(np.abs(error)):11.2f}  {1000 * np.sqrt(np.mean(error**2)):9.2f}  "
-            f"{1000 * np.median(truth.sigma[clean]):14.2f}"
+            f"{int(truth.outlier.sum()):6d}  {int(truth.clamped.sum()):7d} | "
+            f"{1000 * np.median(np.abs(error)):9.2f}  {1000 * np.sqrt(np.mean(error**2)):9.2f}     | "
+            f"{1000 * np.median(truth.sigma[clean]):6.2f} | "
+            f"{1000 * np.sqrt(np.mean((smooth - truth.range)[kept] ** 2)):9.2f}  {int((frame.valid & ~np.isfinite(smooth)).sum()):7d}"
         )
     print()
-    print("  next: `rangesurf info " + str(out) + "`; the pipeline stages (denoise, normals, segment, mesh,")
-    print("  register, merge, uncertainty) join this demo as they land.")
+    print("  denoised: outlier removal + anisotropic diffusion with the sensor's noise model (RMSE on the")
+    print("  pixels the simulator did not corrupt). Next: `rangesurf info " + str(out) + "`, `rangesurf denoise FILE --out DIR`;")
+    print("  the later stages (normals, segment, mesh, register, merge, uncertainty) join this demo as they land.")
     return 0
 
 
