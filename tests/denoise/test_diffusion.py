@@ -6,6 +6,7 @@ import math
 
 import numpy as np
 import pytest
+from _synthetic import RANGE_NOISE_ONLY, range_image
 from scipy import ndimage
 
 import rangesurf as rs
@@ -24,25 +25,8 @@ from rangesurf.denoise.diffusion import (
     _pair_kappas_reference,
 )
 from rangesurf.denoise.metrics import resolved_jump_ratios
-from rangesurf.simulate import SimulationNoise
 
 SHAPES = [(144, 176), (37, 53), (5, 17), (40, 1), (1, 40), (2, 2), (1, 1)]
-# Range noise only: mixed pixels and outliers are other stages' business.
-RANGE_NOISE_ONLY = SimulationNoise(mixed_pixels=False, salt_and_pepper=0.0)
-
-
-def _range_image(shape, *, seed=0, holes=True):
-    """Ranges of 1-4 m: two planes, a box in front, 1 cm noise and (optionally) NaN holes."""
-    rng = np.random.default_rng(seed)
-    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
-    image = 2.0 + 0.01 * rows + 0.005 * cols
-    image[:, cols[0] >= shape[1] // 2] += 1.0
-    image[shape[0] // 4 : shape[0] // 2, shape[1] // 4 : shape[1] // 3 + 1] = 1.2
-    image = image + rng.normal(0.0, 0.01, shape)
-    if holes and image.size > 4:
-        image[rng.random(shape) < 0.05] = np.nan
-        image[shape[0] // 2 : shape[0] // 2 + 3, : shape[1] // 3] = np.nan
-    return image.astype(np.float32)
 
 
 def _assert_same_holes(result, image):
@@ -59,7 +43,7 @@ def _assert_same_holes(result, image):
 @pytest.mark.parametrize("conduction", CONDUCTIONS)
 @pytest.mark.parametrize("shape", SHAPES)
 def test_kernel_matches_reference_with_holes(conduction, shape):
-    image = _range_image(shape)
+    image = range_image(shape)
     ours = _diffuse(image, 0.0, 1.0, 0.05, 0.25, 20, _CONDUCTION_CODES[conduction])
     reference = _diffuse_reference(image, 0.05, 0.25, 20, conduction)
     _assert_same_holes(ours, image)
@@ -70,7 +54,7 @@ def test_kernel_matches_reference_with_holes(conduction, shape):
 @pytest.mark.parametrize("conduction", CONDUCTIONS)
 @pytest.mark.parametrize("shape", SHAPES)
 def test_pairwise_kernel_matches_reference_with_holes(conduction, shape):
-    image = _range_image(shape, seed=1)
+    image = range_image(shape, seed=1)
     sigma = 0.005 + 0.004 * np.nan_to_num(image)  # ToF-like: grows with range
     kappas = _pair_kappas_reference(image, sigma, 2.0)
     ours = _diffuse_pairwise(image, *kappas, 0.25, 20, _CONDUCTION_CODES[conduction])
@@ -80,7 +64,7 @@ def test_pairwise_kernel_matches_reference_with_holes(conduction, shape):
 
 
 def test_large_frames_match_the_reference():
-    image = _range_image((1200, 1600), seed=11)
+    image = range_image((1200, 1600), seed=11)
     ours = anisotropic_diffusion(image, kappa=0.05, step=0.25, iterations=3)
     np.testing.assert_allclose(ours, _diffuse_reference(image, 0.05, 0.25, 3, "exponential"), atol=1e-5)
 
@@ -88,7 +72,7 @@ def test_large_frames_match_the_reference():
 @pytest.mark.parametrize("conduction", CONDUCTIONS)
 def test_range_sigma_sets_kappa_per_pair(conduction):
     """kappa of pair p, q = multiple * sqrt(sigma_p**2 + sigma_q**2); a number is one sigma for all."""
-    image = _range_image((50, 70), seed=10)
+    image = range_image((50, 70), seed=10)
     sigma = 0.005 * np.where(np.isnan(image), np.nan, image) ** 2  # structured light: grows with range squared
     multiple = METRIC_KAPPA_MULTIPLES[conduction]
     result = anisotropic_diffusion(image, range_sigma=sigma, conduction=conduction, step=0.25, iterations=20)
@@ -104,7 +88,7 @@ def test_range_sigma_sets_kappa_per_pair(conduction):
 @pytest.mark.parametrize("conduction", CONDUCTIONS)
 def test_kernel_matches_reference_on_grey_levels(conduction):
     """Thesis mode's 0-255 normalisation: offset and gain, result back in metres."""
-    image = _range_image((60, 80), seed=2)
+    image = range_image((60, 80), seed=2)
     low, high = float(np.nanmin(image)), float(np.nanmax(image))
     gain = 255.0 / (high - low)
     ours = _diffuse(image, low, gain, 20.0, 0.1, 10, _CONDUCTION_CODES[conduction])
@@ -122,7 +106,7 @@ def test_kernel_matches_reference_on_grey_levels(conduction):
 @pytest.mark.parametrize("conduction", CONDUCTIONS)
 def test_matches_medpy(conduction, shape):
     smoothing = pytest.importorskip("medpy.filter.smoothing", reason="medpy is the peer implementation (bench extra)")
-    image = _range_image(shape, holes=False)
+    image = range_image(shape, holes=False)
     option = CONDUCTIONS.index(conduction) + 1
     # medpy's Tukey cut-off is sqrt(2) * kappa; ours is kappa (Black et al.).
     medpy_kappa = 0.05 / math.sqrt(2.0) if conduction == "tukey" else 0.05
@@ -133,7 +117,7 @@ def test_matches_medpy(conduction, shape):
 
 def test_thesis_mode_is_medpy_on_the_normalised_image():
     smoothing = pytest.importorskip("medpy.filter.smoothing", reason="medpy is the peer implementation (bench extra)")
-    image = _range_image((72, 88), holes=False)
+    image = range_image((72, 88), holes=False)
     low, high = float(image.min()), float(image.max())
     grey = (image.astype(np.float64) - low) * 255.0 / (high - low)
     diffused = smoothing.anisotropic_diffusion(grey, niter=10, kappa=20, gamma=0.1, option=1)
@@ -149,7 +133,7 @@ def test_thesis_mode_is_medpy_on_the_normalised_image():
 @pytest.mark.parametrize("conduction", CONDUCTIONS)
 def test_a_nan_wall_insulates(conduction):
     """What lies beyond a wall of NaN cannot change anything on this side."""
-    image = _range_image((50, 60), holes=False)
+    image = range_image((50, 60), holes=False)
     image[:, 25:28] = np.nan
     image[10:15, 5:12] = np.nan
     changed = image.copy()
@@ -169,7 +153,7 @@ def test_a_nan_wall_insulates(conduction):
 @pytest.mark.parametrize("conduction", CONDUCTIONS)
 def test_nans_of_either_sign_insulate(conduction):
     """NaN's sign bit is arbitrary (x86 makes -NaN of inf - inf); both kinds are holes."""
-    image = _range_image((20, 30), holes=False)
+    image = range_image((20, 30), holes=False)
     negative_nan = np.array([0xFFC00000], np.uint32).view(np.float32)[0]
     image[5:8, 5:8] = negative_nan
     image[12, 20] = np.nan
@@ -193,7 +177,7 @@ def test_a_pixel_surrounded_by_holes_keeps_its_value():
 @pytest.mark.parametrize("holes", [False, True])
 def test_zero_flux_borders_and_holes_conserve_the_sum(conduction, holes):
     """Every flux leaves one pixel and enters another: the total is conserved."""
-    image = _range_image((45, 70), seed=3, holes=holes)
+    image = range_image((45, 70), seed=3, holes=holes)
     result = anisotropic_diffusion(image, kappa=0.05, step=0.25, iterations=40, conduction=conduction)
     valid = ~np.isnan(image)
     assert math.isclose(result[valid].astype(np.float64).sum(), image[valid].astype(np.float64).sum(), rel_tol=2e-6)
@@ -207,7 +191,7 @@ def test_zero_flux_borders_and_holes_conserve_the_sum(conduction, holes):
 @pytest.mark.parametrize(("conduction", "conductance"), [("exponential", 1.0), ("rational", 1.0), ("tukey", 0.5)])
 def test_large_kappa_is_the_linear_heat_equation(conduction, conductance):
     """With kappa >> every difference, g is constant: one explicit step of the 5-point Laplacian."""
-    image = _range_image((30, 41), seed=4, holes=False)
+    image = range_image((30, 41), seed=4, holes=False)
     result = anisotropic_diffusion(image, kappa=1e4, step=0.2, iterations=1, conduction=conduction)
     # Zero flux at the border: the Laplacian of an edge-replicated image.
     laplacian = ndimage.convolve(image.astype(np.float64), [[0, 1, 0], [1, -4, 1], [0, 1, 0]], mode="nearest")
@@ -333,7 +317,7 @@ def test_thesis_presets():
     # The thesis's lambda = 0.3 as two stable half steps: the same diffusion time.
     assert canny.step <= 0.25 and math.isclose(canny.step * canny.iterations, 0.3 * 10)
     assert canny.passes == 3
-    image = _range_image((40, 50), seed=7)
+    image = range_image((40, 50), seed=7)
     expected = image
     for _ in range(3):
         expected = anisotropic_diffusion(expected, mode="thesis", kappa=20.0, step=0.15, iterations=20)
@@ -377,18 +361,18 @@ def test_tiny_frames():
 
 
 def test_integer_millimetres_and_the_input_is_untouched():
-    millimetres = (np.nan_to_num(_range_image((20, 30), seed=8), nan=0.0) * 1000).astype(np.uint16)
+    millimetres = (np.nan_to_num(range_image((20, 30), seed=8), nan=0.0) * 1000).astype(np.uint16)
     copy = millimetres.copy()
     result = anisotropic_diffusion(millimetres, kappa=30.0)
     assert result.dtype == np.float32 and np.array_equal(millimetres, copy)
-    image = _range_image((20, 30), seed=8)
+    image = range_image((20, 30), seed=8)
     before = image.copy()
     anisotropic_diffusion(image)
     np.testing.assert_array_equal(image, before)
 
 
 def test_zero_iterations_return_a_copy():
-    image = _range_image((10, 12))
+    image = range_image((10, 12))
     result = anisotropic_diffusion(image, iterations=0)
     np.testing.assert_array_equal(result, image)
     assert result is not image
@@ -396,7 +380,7 @@ def test_zero_iterations_return_a_copy():
 
 def test_automatic_kappa_follows_the_noise():
     """Scaling ranges and noise together scales the result: kappa is set from the noise, not a constant."""
-    image = _range_image((60, 80), seed=9)
+    image = range_image((60, 80), seed=9)
     np.testing.assert_allclose(
         anisotropic_diffusion(image * np.float32(4.0)), 4.0 * anisotropic_diffusion(image), rtol=0, atol=1e-5
     )
@@ -432,7 +416,7 @@ def test_bad_images(image, message):
 )
 def test_inf_is_refused_whatever_the_options(options):
     for where in ((0, 0), (9, 11), (5, 6)):
-        image = _range_image((10, 12), holes=False)
+        image = range_image((10, 12), holes=False)
         image[where] = -np.inf
         with pytest.raises(ValueError, match=r"contains Inf \(1 values\); mark missing returns with NaN"):
             anisotropic_diffusion(image, **options)
@@ -466,4 +450,4 @@ def test_values_that_overflow_once_divided_by_kappa_are_refused():
 )
 def test_bad_options(options, message):
     with pytest.raises(ValueError, match=message):
-        anisotropic_diffusion(_range_image((10, 12)), **options)
+        anisotropic_diffusion(range_image((10, 12)), **options)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from _synthetic import RANGE_NOISE_ONLY, range_image
 
 import rangesurf as rs
 from rangesurf.denoise.phase import (
@@ -14,25 +15,8 @@ from rangesurf.denoise.phase import (
     _median_amplitude,
     phase_preserving_denoise,
 )
-from rangesurf.simulate import SimulationNoise
 
-# Range noise only: mixed pixels and outliers are other stages' business.
-RANGE_NOISE_ONLY = SimulationNoise(mixed_pixels=False, salt_and_pepper=0.0)
 SHAPES = [(144, 176), (37, 53), (16, 9), (5, 17), (40, 1), (1, 40), (2, 2)]
-
-
-def _range_image(shape, *, seed=0, holes=True):
-    """Ranges of 1-4 m: two planes, a box in front, 1 cm noise and (optionally) NaN holes."""
-    rng = np.random.default_rng(seed)
-    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
-    image = 2.0 + 0.01 * rows + 0.005 * cols
-    image[:, cols[0] >= shape[1] // 2] += 1.0
-    image[shape[0] // 4 : shape[0] // 2, shape[1] // 4 : shape[1] // 3 + 1] = 1.2
-    image = image + rng.normal(0.0, 0.01, shape)
-    if holes and image.size > 4:
-        image[rng.random(shape) < 0.05] = np.nan
-        image[shape[0] // 2 : shape[0] // 2 + 3, : shape[1] // 3] = np.nan
-    return image.astype(np.float32)
 
 
 def _options(preset):
@@ -48,7 +32,7 @@ def _options(preset):
 @pytest.mark.parametrize("preset", list(PHASE_PRESETS))
 @pytest.mark.parametrize("shape", SHAPES)
 def test_matches_reference_with_holes(preset, shape):
-    image = _range_image(shape, seed=sum(shape))
+    image = range_image(shape, seed=sum(shape))
     result = phase_preserving_denoise(image, preset=preset)
     expected, _ = _denoise_reference(image, **_options(preset))
     assert result.dtype == np.float32 and result.shape == image.shape
@@ -66,7 +50,7 @@ def test_matches_reference_with_holes(preset, shape):
     ],
 )
 def test_matches_reference_for_other_options(options):
-    image = _range_image((61, 47), seed=5)
+    image = range_image((61, 47), seed=5)
     result = phase_preserving_denoise(image, **options)
     reference_options = dict(options)
     reference_options["k"] = reference_options.pop("noise_std_multiplier")
@@ -79,7 +63,7 @@ def test_matches_reference_for_other_options(options):
 
 @pytest.mark.parametrize("preset", list(PHASE_PRESETS))
 def test_band_sum_matches_reference(preset):
-    image = _range_image((50, 70), seed=2, holes=False)
+    image = range_image((50, 70), seed=2, holes=False)
     _, expected = _denoise_reference(image, **_options(preset), epsilon=1e-5)
     result = _kovesi_band_sum(image, **_options(preset))
     np.testing.assert_allclose(result, expected, rtol=0, atol=1e-5)
@@ -101,7 +85,7 @@ def _ppdenoise_options(preset):
 @pytest.mark.parametrize("preset", list(PHASE_PRESETS))
 @pytest.mark.parametrize("shape", [(144, 176), (33, 48)])
 def test_band_sum_matches_ppdenoise(ppdenoise, preset, shape):
-    image = _range_image(shape, seed=1, holes=False)
+    image = range_image(shape, seed=1, holes=False)
     expected = ppdenoise(image.astype(np.float64), **_ppdenoise_options(preset))
     result = _kovesi_band_sum(image, **_options(preset))
     # float32 against float64: measured 1.7e-6 of a band sum that reaches 2.6.
@@ -113,7 +97,7 @@ def test_band_sum_matches_ppdenoise(ppdenoise, preset, shape):
 
 def test_metres_result_is_input_minus_what_ppdenoise_removed(ppdenoise):
     """``result = image - (band-pass - ppdenoise) / gain`` (module notes), with ppdenoise's own band sum."""
-    image = _range_image((48, 64), seed=4, holes=False)
+    image = range_image((48, 64), seed=4, holes=False)
     preset = "thesis-b"
     k, scales, mult, orientations = PHASE_PRESETS[preset]
     bank = _filter_bank(image.shape, scales, mult, orientations, 2.0, 0.55)
@@ -199,7 +183,7 @@ def test_presets_are_the_thesis_settings():
 
 
 def test_explicit_options_override_the_preset():
-    image = _range_image((30, 40), seed=3)
+    image = range_image((30, 40), seed=3)
     a = phase_preserving_denoise(image, preset="thesis-a", noise_std_multiplier=5.0, scales=5, mult=2.0, orientations=6)
     b = phase_preserving_denoise(image, preset="thesis-b")
     np.testing.assert_array_equal(a, b)
@@ -228,7 +212,7 @@ def test_integer_input_and_input_not_modified():
     result = phase_preserving_denoise(image)
     assert result.dtype == np.float32
     np.testing.assert_array_equal(image, before)
-    float_image = _range_image((20, 20), seed=9)
+    float_image = range_image((20, 20), seed=9)
     float_before = float_image.copy()
     phase_preserving_denoise(float_image)
     np.testing.assert_array_equal(float_image, float_before)
