@@ -15,11 +15,13 @@ from rangesurf.edges import (
     EdgeScores,
     clean_edges,
     combined_edges,
+    crease_free_mask,
     detect_edges,
     edge_difference,
     edge_scores,
     equalize_histogram,
     normalize_range,
+    surface_boundaries,
     true_depth_edges,
 )
 
@@ -74,18 +76,6 @@ def _clean_edges_reference(edges: np.ndarray, border_width: int = 2, continuity:
     return out
 
 
-def _surface_changes(surface_id: np.ndarray) -> np.ndarray:
-    """Pixels with a 4-neighbour on another surface."""
-    changes = np.zeros(surface_id.shape, bool)
-    vertical = surface_id[:-1] != surface_id[1:]
-    horizontal = surface_id[:, :-1] != surface_id[:, 1:]
-    changes[:-1] |= vertical
-    changes[1:] |= vertical
-    changes[:, :-1] |= horizontal
-    changes[:, 1:] |= horizontal
-    return changes
-
-
 def _scoring_mask(truth: sim.GroundTruth, depth_edges: np.ndarray, *, band: int = 3) -> np.ndarray:
     """Pixels to score depth edges on: all but the creases and the 2-pixel border.
 
@@ -95,9 +85,7 @@ def _scoring_mask(truth: sim.GroundTruth, depth_edges: np.ndarray, *, band: int 
     pixels of one are neither right nor wrong. The border is what
     `clean_edges` clears, so raw and cleaned maps are scored alike.
     """
-    creases = _surface_changes(truth.surface_id) & ~depth_edges
-    dont_care = ndimage.binary_dilation(creases, iterations=band) & ~ndimage.binary_dilation(depth_edges)
-    mask = ~dont_care
+    mask = crease_free_mask(truth.surface_id, depth_edges, band=band)
     mask[:2] = mask[-2:] = False
     mask[:, :2] = mask[:, -2:] = False
     return mask
@@ -252,7 +240,7 @@ def test_true_depth_edges_lie_on_surface_changes_with_depth_jumps(arena_frames):
     creases = grazing = 0
     for truth in truths:
         labelled = true_depth_edges(truth.range, surface_id=truth.surface_id)
-        changes = _surface_changes(truth.surface_id)
+        changes = surface_boundaries(truth.surface_id)
         assert labelled.any()
         assert not (labelled & ~changes).any(), "a depth edge off every surface change"
         assert np.array_equal(labelled, _jumps_to(truth, other_surface=True))

@@ -67,6 +67,8 @@ __all__ = [
     "clean_edges",
     "combined_edges",
     "true_depth_edges",
+    "surface_boundaries",
+    "crease_free_mask",
     "edge_scores",
     "edge_difference",
 ]
@@ -1040,3 +1042,50 @@ def edge_difference(raw_edges: np.ndarray, filtered_edges: np.ndarray) -> EdgeDi
         difference=difference, added=added, removed=removed, kept=int((raw & filtered).sum()),
         changed_fraction=(added + removed) / raw.size if raw.size else 0.0,
     )
+
+
+def surface_boundaries(surface_id: np.ndarray) -> np.ndarray:
+    """``(H, W)`` bool: pixels with a 4-neighbour on another surface (ground-truth ids)."""
+    surface_id = np.asarray(surface_id)
+    if surface_id.ndim != 2:
+        raise ValueError(f"surface ids must be 2-D (H, W), got shape {surface_id.shape}")
+    changes = np.zeros(surface_id.shape, bool)
+    vertical = surface_id[:-1] != surface_id[1:]
+    horizontal = surface_id[:, :-1] != surface_id[:, 1:]
+    changes[:-1] |= vertical
+    changes[1:] |= vertical
+    changes[:, :-1] |= horizontal
+    changes[:, 1:] |= horizontal
+    return changes
+
+
+def crease_free_mask(surface_id: np.ndarray, depth_edges: np.ndarray, *, band: int = 3) -> np.ndarray:
+    """Pixels on which to score depth edges: all but those near a crease.
+
+    A crease (two surfaces meeting without a depth jump: wall and floor) is a
+    real surface boundary that edge detectors rightly find, a few pixels off
+    after smoothing, but it is not a depth edge; detections within ``band``
+    pixels of one (and not next to a depth edge) are neither right nor wrong.
+
+    Parameters
+    ----------
+    surface_id : (H, W) int
+        Ground-truth surface ids (simulator).
+    depth_edges : (H, W) bool
+        True depth discontinuities (`true_depth_edges`).
+    band : int
+        Pixels around a crease left out, >= 0.
+
+    Returns
+    -------
+    (H, W) bool
+        True where a detection is scored.
+    """
+    depth_edges = _check_edge_map(depth_edges, "depth edges")
+    if band < 0:
+        raise ValueError(f"band must be >= 0, got {band}")
+    creases = surface_boundaries(surface_id) & ~depth_edges
+    if band == 0 or not creases.any():
+        return np.ones(depth_edges.shape, bool)
+    dont_care = ndimage.binary_dilation(creases, iterations=band) & ~ndimage.binary_dilation(depth_edges)
+    return ~dont_care

@@ -36,11 +36,10 @@ from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
-from scipy import ndimage
 
 from rangesurf._checks import check_range_image
 
-from rangesurf.edges import detect_edges, edge_difference, edge_scores, true_depth_edges
+from rangesurf.edges import crease_free_mask, detect_edges, edge_difference, edge_scores, true_depth_edges
 
 __all__ = ["DenoiseScores", "range_rmse", "resolved_jump_ratios", "score_denoising"]
 
@@ -152,27 +151,6 @@ class DenoiseScores:
     tolerance: float
 
 
-def _surface_changes(surface_id: np.ndarray) -> np.ndarray:
-    """Pixels with a 4-neighbour on another surface."""
-    changes = np.zeros(surface_id.shape, bool)
-    vertical = surface_id[:-1] != surface_id[1:]
-    horizontal = surface_id[:, :-1] != surface_id[:, 1:]
-    changes[:-1] |= vertical
-    changes[1:] |= vertical
-    changes[:, :-1] |= horizontal
-    changes[:, 1:] |= horizontal
-    return changes
-
-
-def _crease_free(surface_id: np.ndarray, depth_edges: np.ndarray, band: int) -> np.ndarray:
-    """All pixels but those within ``band`` of a crease and away from any depth edge."""
-    creases = _surface_changes(surface_id) & ~depth_edges
-    if band == 0 or not creases.any():
-        return np.ones(surface_id.shape, bool)
-    dont_care = ndimage.binary_dilation(creases, iterations=band) & ~ndimage.binary_dilation(depth_edges)
-    return ~dont_care
-
-
 def score_denoising(
     raw: np.ndarray,
     denoised: np.ndarray,
@@ -282,7 +260,7 @@ def score_denoising(
     )
     edge_mask = mask
     if surface_id is not None:
-        crease_free = _crease_free(surface_id, depth_edges, int(crease_band))
+        crease_free = crease_free_mask(surface_id, depth_edges, band=int(crease_band))
         edge_mask = crease_free if mask is None else crease_free & mask
     raw_edges = detect_edges(raw_image, method=edge_method, **detect_options)
     denoised_edges = detect_edges(denoised_image, method=edge_method, **detect_options)
