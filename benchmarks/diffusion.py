@@ -30,9 +30,8 @@ from pathlib import Path
 import numpy as np
 
 import rangesurf as rs
-from rangesurf.bench import machine_description, time_call
+from rangesurf.bench import denoising_quality, machine_description, time_call
 from rangesurf.denoise import THESIS_PRESETS, anisotropic_diffusion
-from rangesurf.denoise.metrics import resolved_jump_ratios
 from rangesurf.simulate import SimulationNoise
 
 ITERATIONS = 10
@@ -131,15 +130,6 @@ def benchmark_speed(*, repeats: int = 21) -> list[dict]:
     return rows
 
 
-def _rmse(estimate: np.ndarray, frame: rs.RangeFrame, truth) -> float:
-    scored = np.isfinite(truth.range) & np.isfinite(frame.range) & np.isfinite(estimate) & ~truth.clamped
-    return float(np.sqrt(np.mean((estimate - truth.range)[scored] ** 2)))
-
-
-def _jump_ratios(estimate: np.ndarray, truth) -> np.ndarray:
-    return resolved_jump_ratios(estimate, truth.range, truth.sigma)
-
-
 def benchmark_quality(*, n_frames: int = 6, seed: int = 3) -> list[dict]:
     """RMSE reduction and edge sharpness per setting on simulated SR-3000 arena frames."""
     frames, truths = rs.simulate.simulate_sequence("arena", "sr3000", n_frames, seed=seed, noise=RANGE_NOISE_ONLY)
@@ -159,26 +149,7 @@ def benchmark_quality(*, n_frames: int = 6, seed: int = 3) -> list[dict]:
         "thesis preset 'edges'": lambda frame: THESIS_PRESETS["edges"].apply(frame.range),
         "thesis preset 'canny'": lambda frame: THESIS_PRESETS["canny"].apply(frame.range),
     }
-    rows = []
-    for setting, run in settings.items():
-        rmse, raw_rmse, ratios = [], [], []
-        for frame, truth in zip(frames, truths):
-            estimate = run(frame)
-            rmse.append(_rmse(estimate, frame, truth))
-            raw_rmse.append(_rmse(frame.range, frame, truth))
-            ratios.append(_jump_ratios(estimate, truth))
-        ratios = np.concatenate(ratios)
-        reduction = np.array(raw_rmse) / np.array(rmse)
-        rows.append({
-            "setting": setting,
-            "rmse_m": float(np.mean(rmse)),
-            "rmse_reduction_mean": float(reduction.mean()),
-            "rmse_reduction_min": float(reduction.min()),
-            "jumps_kept_80_percent": float(np.mean(ratios >= 0.8)),
-            "jump_ratio_median": float(np.median(ratios)),
-            "jumps": int(ratios.size),
-        })
-    return rows
+    return denoising_quality(settings, frames, truths)
 
 
 def format_results(results: dict) -> str:

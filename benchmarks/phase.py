@@ -31,8 +31,7 @@ import numpy as np
 from scipy import ndimage
 
 import rangesurf as rs
-from rangesurf.bench import machine_description, time_call
-from rangesurf.denoise.metrics import resolved_jump_ratios
+from rangesurf.bench import denoising_quality, machine_description, time_call
 from rangesurf.denoise.phase import (
     PHASE_PRESETS,
     _kovesi_band_sum,
@@ -103,15 +102,6 @@ def benchmark_speed(*, repeats: int = 15) -> list[dict]:
     return rows
 
 
-def _rmse(estimate: np.ndarray, frame: rs.RangeFrame, truth) -> float:
-    scored = np.isfinite(truth.range) & np.isfinite(frame.range) & np.isfinite(estimate) & ~truth.clamped
-    return float(np.sqrt(np.mean((estimate - truth.range)[scored] ** 2)))
-
-
-def _jump_ratios(estimate: np.ndarray, truth) -> np.ndarray:
-    return resolved_jump_ratios(estimate, truth.range, truth.sigma)
-
-
 def benchmark_quality(*, n_frames: int = N_QUALITY_FRAMES, seed: int = 3) -> list[dict]:
     """RMSE reduction and edge sharpness per preset on simulated SR-3000 arena frames."""
     frames, truths = rs.simulate.simulate_sequence("arena", "sr3000", n_frames, seed=seed, noise=RANGE_NOISE_ONLY)
@@ -122,26 +112,7 @@ def benchmark_quality(*, n_frames: int = N_QUALITY_FRAMES, seed: int = 3) -> lis
                 lambda frame, preset, softness: phase_preserving_denoise(frame.range, preset=preset, softness=softness),
                 preset=preset, softness=softness,
             )
-    rows = []
-    for setting, run in settings.items():
-        rmse, raw_rmse, ratios = [], [], []
-        for frame, truth in zip(frames, truths):
-            estimate = run(frame)
-            rmse.append(_rmse(estimate, frame, truth))
-            raw_rmse.append(_rmse(frame.range, frame, truth))
-            ratios.append(_jump_ratios(estimate, truth))
-        ratios = np.concatenate(ratios)
-        reduction = np.array(raw_rmse) / np.array(rmse)
-        rows.append({
-            "setting": setting,
-            "rmse_m": float(np.mean(rmse)),
-            "rmse_reduction_mean": float(reduction.mean()),
-            "rmse_reduction_min": float(reduction.min()),
-            "jumps_kept_80_percent": float(np.mean(ratios >= 0.8)),
-            "jump_ratio_median": float(np.median(ratios)),
-            "jumps": int(ratios.size),
-        })
-    return rows
+    return denoising_quality(settings, frames, truths)
 
 
 def format_results(speed: list[dict], quality: list[dict], peer_version: str | None) -> str:
