@@ -98,3 +98,10 @@ def test_denoise_writes_a_frame_closer_to_truth_and_a_panel(tmp_path, capsys, me
     panel = cv2.imread(str(tmp_path / "den" / "frame000000_panel.png"))
     assert panel is not None and panel.shape[1] == 2 * 176 * 2  # two columns of 2x-enlarged frames
     assert "outliers removed" in capsys.readouterr().out
+
+
+def test_readme_error_example_is_what_a_truncated_line_gives(tmp_path, capsys):
+    scan = tmp_path / "scan000.3d"
+    scan.write_text("360 x 225\n" + "1 2 3\n" * 5 + "10.1 0\n")
+    assert main(["info", str(scan)]) == 2
+    assert "scan000.3d, line 7: expected 3 numbers like the first point line (line 2), got 2: '10.1 0'" in capsys.readouterr().err
