@@ -29,7 +29,9 @@ def main() -> None:
             seconds, raw_errors, denoised_errors = [], [], []
             for frame, truth in zip(frames, truths):
                 def run(frame=frame):
-                    return denoise.denoise_range(frame.range, method=method, sensor=frame.sensor, intensity=frame.intensity)
+                    return denoise.denoise_range(
+                        frame.range, method=method, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays
+                    )
                 seconds.append(time_call(run, repeats=5))
                 result = run()
                 both = np.isfinite(result) & np.isfinite(frame.range) & np.isfinite(truth.range)

@@ -143,7 +143,7 @@ def _command_demo(args: argparse.Namespace) -> int:
     for index, (frame, truth) in enumerate(zip(loaded, truths)):
         clean = frame.valid & np.isfinite(truth.range) & ~truth.mixed & ~truth.outlier & ~truth.clamped
         error = (frame.range - truth.range)[clean]
-        smooth = denoise.denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity)
+        smooth = denoise.denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)
         kept = clean & np.isfinite(smooth)
         surfaces = len(np.unique(truth.surface_id[truth.surface_id > 0]))
         print(
@@ -167,7 +167,7 @@ def _command_denoise(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     for index, frame in enumerate(_progress(frames, total=len(frames), description="denoising", quiet=args.quiet)):
         smooth = denoise.denoise_range(
-            frame.range, method=args.method, sensor=frame.sensor, intensity=frame.intensity,
+            frame.range, method=args.method, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays,
             remove_outliers=not args.keep_outliers,
         )
         name = Path(args.path).stem if len(frames) == 1 and Path(args.path).is_file() else f"frame{index:06d}"

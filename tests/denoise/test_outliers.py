@@ -76,12 +76,31 @@ def test_isolated_kernel_matches_reference(shape, radius, min_support):
     np.testing.assert_array_equal(_isolated_kernel(image, sigma, 3.0, radius, min_support), expected)
 
 
+NO_RAYS = np.empty((0, 0, 3))
+
+
+def _fan_rays(shape, step_deg):
+    """Unit rays of a grid with ``step_deg`` between neighbouring pixels, looking along +z."""
+    rows, cols = np.mgrid[0 : shape[0], 0 : shape[1]]
+    azimuth = np.radians(step_deg * (cols - shape[1] / 2))
+    elevation = np.radians(step_deg * (rows - shape[0] / 2))
+    return np.stack(
+        [np.sin(azimuth) * np.cos(elevation), np.sin(elevation), np.cos(azimuth) * np.cos(elevation)], axis=-1
+    )
+
+
 @pytest.mark.parametrize("shape", SHAPES)
-def test_flying_kernel_matches_reference(shape):
+@pytest.mark.parametrize("step_deg", [None, 0.3, 2.0])
+def test_flying_kernel_matches_reference(shape, step_deg):
     image = _image(shape, seed=3)
     sigma = np.full(shape, 0.01)
-    expected = _flying_reference(image, sigma, 0.05, 3.0, 3.0)
-    np.testing.assert_array_equal(_flying_kernel(image, sigma, 0.05, 3.0, 3.0, _DIRECTIONS), expected)
+    rays = None if step_deg is None else _fan_rays(shape, step_deg)
+    expected = _flying_reference(image, sigma, 0.05, 3.0, 3.0, rays, 10.0)
+    kernel_rays = NO_RAYS if rays is None else rays
+    got = _flying_kernel(image, sigma, 0.05, 3.0, 3.0, _DIRECTIONS, kernel_rays, np.cos(np.radians(10.0)))
+    np.testing.assert_array_equal(got, expected)
+    if step_deg is not None and shape == SHAPES[0]:
+        assert expected.any()  # the rays veto some candidates, not all
 
 
 def test_kernels_match_references_on_simulated_frame(arena):
@@ -90,9 +109,15 @@ def test_kernels_match_references_on_simulated_frame(arena):
     np.testing.assert_array_equal(
         _isolated_kernel(frame.range, sigma, 4.0, 1, 2), _isolated_reference(frame.range, sigma, 4.0, 1, 2)
     )
+    cos_max_angle = np.cos(np.radians(10.0))
     np.testing.assert_array_equal(
-        _flying_kernel(frame.range, sigma, 0.05, 3.0, 3.0, _DIRECTIONS),
+        _flying_kernel(frame.range, sigma, 0.05, 3.0, 3.0, _DIRECTIONS, NO_RAYS, cos_max_angle),
         _flying_reference(frame.range, sigma, 0.05, 3.0, 3.0),
+    )
+    rays = frame.rays.astype(np.float64)
+    np.testing.assert_array_equal(
+        _flying_kernel(frame.range, sigma, 0.05, 3.0, 3.0, _DIRECTIONS, rays, cos_max_angle),
+        _flying_reference(frame.range, sigma, 0.05, 3.0, 3.0, rays, 10.0),
     )
 
 
@@ -156,22 +181,25 @@ def test_remove_isolated_estimates_noise_without_sigma(arena):
     assert (removed & (truth.outlier | truth.mixed)).sum() / removed.sum() >= 0.6
 
 
-def test_remove_flying_pixels_finds_mixed_pixels(arena):
+@pytest.mark.parametrize("with_rays", [False, True])
+def test_remove_flying_pixels_finds_mixed_pixels(arena, with_rays):
     frames, truths = arena
     hits = mixed = true_removals = removals = 0
     for frame, truth in zip(frames, truths):
-        _, removed = remove_flying_pixels(frame.range, range_sigma=_sensor_sigma(frame), return_mask=True)
+        rays = frame.rays if with_rays else None
+        _, removed = remove_flying_pixels(frame.range, range_sigma=_sensor_sigma(frame), rays=rays, return_mask=True)
         far = truth.mixed & ~(np.abs(frame.range - truth.range) <= 3 * truth.sigma)
         hits += (removed & far).sum()
         mixed += far.sum()
         true_removals += (removed & (truth.outlier | truth.mixed)).sum()
         removals += removed.sum()
     recall, precision = hits / mixed, true_removals / removals
-    # Measured (seed 1): recall 0.46, precision 0.77. Bands of several mixed
-    # pixels (edges seen at grazing angles) have no clean neighbours to test against.
+    # Measured (seed 1): recall 0.46, precision 0.78 (with rays 0.46, 0.80).
+    # Nearly all the misses read within 3 sigma of a neighbour on one side: a
+    # blend leaning on one surface looks like a noisy reading of it.
     assert mixed > 100
-    assert recall >= 0.4, recall
-    assert precision >= 0.7, precision
+    assert recall >= 0.42, recall
+    assert precision >= 0.75, precision
 
 
 def test_flying_pixel_on_a_synthetic_step_and_not_on_a_slanted_plane():
@@ -248,6 +276,10 @@ def test_bad_images(remover, bad):
         lambda im: remove_flying_pixels(im, jump=0.0),
         lambda im: remove_flying_pixels(im, slope_ratio=2.0),
         lambda im: remove_flying_pixels(im, threshold=-1.0),
+        lambda im: remove_flying_pixels(im, max_angle=0.0),
+        lambda im: remove_flying_pixels(im, max_angle=90.0),
+        lambda im: remove_flying_pixels(im, rays=np.ones((4, 4))),
+        lambda im: remove_flying_pixels(im, rays=np.ones((4, 5, 3))),
     ],
 )
 def test_bad_options(call):
@@ -270,3 +302,35 @@ def test_isolated_removal_leaves_smooth_real_surfaces_alone(relative):
     _, removed = remove_isolated(frame.range, range_sigma=sigma, return_mask=True)
     assert removed.sum() < 0.01 * frame.valid.sum()
     np.testing.assert_array_equal(removed, _isolated_reference(frame.range.astype(np.float64), sigma, 4.0, 1, 2))
+
+
+@pytest.mark.parametrize("relative, bound", [("uos-3dtk/scan000.3d", 0.015), ("bunny/bun000.ply", 0.001)])
+def test_flying_pixel_removal_with_rays_leaves_grazing_real_surfaces_alone(relative, bound):
+    # Without rays the 0.5 degree 3DTK scan loses 5.0 % of its returns, mostly
+    # on corridor walls and floors seen at grazing angles; with rays 0.85 %.
+    path = REAL_SCANS / relative
+    if not path.is_file():
+        pytest.skip(f"real scan {path} not found (shared test data lives beside the project)")
+    frame = rs.load(path)[0]
+    sigma = frame.sensor.range_sigma(frame.range, frame.intensity)
+    _, removed = remove_flying_pixels(frame.range, range_sigma=sigma, rays=frame.rays, return_mask=True)
+    assert removed.sum() < bound * frame.valid.sum()
+    expected = _flying_reference(frame.range, sigma, 0.05, 3.0, 3.0, frame.rays, 10.0)
+    np.testing.assert_array_equal(removed, expected)
+
+
+def test_rays_keep_a_grazing_plane_but_not_a_flying_pixel():
+    # A floor seen by a 1 degree scanner: range grows 5-15 % per pixel with a
+    # ripple that passes the range-only tests; its points spread sideways.
+    shape = (5, 40)
+    rays = _fan_rays(shape, 1.0)
+    cols = np.arange(shape[1])
+    floor = 1.0 / np.cos(np.radians(40.0 + 1.2 * cols)) + 0.05 * (cols % 3 == 1)
+    image = np.ones((shape[0], 1)) * floor
+    plain = remove_flying_pixels(image, range_sigma=0.005, return_mask=True)[1]
+    assert plain.any()
+    assert not remove_flying_pixels(image, range_sigma=0.005, rays=rays, return_mask=True)[1].any()
+    step = np.where(cols < 20, 2.0, 3.0) * np.ones((shape[0], 1))
+    step[:, 20] = 2.5
+    _, removed = remove_flying_pixels(step, range_sigma=0.01, rays=rays, return_mask=True)
+    assert removed[:, 20].all() and removed.sum() == shape[0]

@@ -52,6 +52,7 @@ def denoise_range(
     method: str = "diffusion",
     sensor: SensorModel | None = None,
     intensity: np.ndarray | None = None,
+    rays: np.ndarray | None = None,
     remove_outliers: bool = True,
 ) -> np.ndarray:
     """Outlier removal, then edge-preserving smoothing: the denoise stage of one frame.
@@ -72,6 +73,10 @@ def denoise_range(
         per-pixel noise sigma that scales every threshold.
     intensity : (H, W) array, optional
         Return intensity, refining the noise sigma of dark surfaces.
+    rays : (H, W, 3) array, optional
+        Unit viewing rays (``frame.rays``): flying pixels are then removed
+        only where the surface is seen almost edge-on, which keeps smooth
+        grazing surfaces of coarse scanners (see `remove_flying_pixels`).
     remove_outliers : bool
         Remove cut-off readings, isolated spikes and flying pixels first.
 
@@ -85,7 +90,7 @@ def denoise_range(
     >>> from rangesurf import simulate
     >>> frames, truths = simulate.simulate_sequence("arena", "sr3000", 1, seed=0)
     >>> frame, truth = frames[0], truths[0]
-    >>> smooth = denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity)
+    >>> smooth = denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)
     >>> bool(np.nanmedian(np.abs(smooth - truth.range)) < np.nanmedian(np.abs(frame.range - truth.range)))
     True
     """
@@ -96,7 +101,7 @@ def denoise_range(
     if remove_outliers:
         # Flying pixels first: the cut-off readings beside them are the
         # "far side" of their jump (outliers module notes).
-        range_image = remove_flying_pixels(range_image, range_sigma=sigma)
+        range_image = remove_flying_pixels(range_image, range_sigma=sigma, rays=rays)
         if sensor is not None and sensor.beyond_max_range == "clamp":
             range_image = remove_cutoff(range_image, max_range=sensor.max_range)
         range_image = remove_isolated(range_image, range_sigma=sigma)
