@@ -22,15 +22,13 @@ from __future__ import annotations
 
 import json
 import math
-import statistics
-import time
 from functools import partial
 from pathlib import Path
 
 import numpy as np
 
 import rangesurf as rs
-from rangesurf.bench import denoising_quality, machine_description, time_call
+from rangesurf.bench import denoising_quality, time_pair, machine_description, time_call
 from rangesurf.denoise import THESIS_PRESETS, anisotropic_diffusion
 from rangesurf.simulate import SimulationNoise
 
@@ -54,20 +52,6 @@ def _frame(sensor: str) -> rs.RangeFrame:
     return frames[0]
 
 
-def _paired_medians(ours, peer, *, repeats: int, warmup: int = 2) -> tuple[float, float]:
-    """Median seconds of two calls timed alternately, so that load on the machine hits both alike."""
-    for _ in range(warmup):
-        ours()
-        peer()
-    ours_times, peer_times = [], []
-    for _ in range(repeats):
-        for call, times in ((ours, ours_times), (peer, peer_times)):
-            started = time.perf_counter()
-            call()
-            times.append(time.perf_counter() - started)
-    return statistics.median(ours_times), statistics.median(peer_times)
-
-
 def _versus_medpy(size: str, setting: str, ours, peer, *, repeats: int) -> dict:
     """One table row: our time and medpy's, their ratio, and the largest difference of the results (metres).
 
@@ -79,7 +63,7 @@ def _versus_medpy(size: str, setting: str, ours, peer, *, repeats: int) -> dict:
     if peer is not None:
         row["medpy_s"] = time_call(peer, repeats=repeats, warmup=2)
         row["speedup_vs_medpy"] = row["medpy_s"] / row["rangesurf_s"]
-        ours_alternating, peer_alternating = _paired_medians(ours, peer, repeats=repeats)
+        ours_alternating, peer_alternating = time_pair(ours, peer, repeats=repeats)
         row["speedup_vs_medpy_alternating"] = peer_alternating / ours_alternating
         row["max_abs_difference_m"] = float(np.max(np.abs(ours() - peer())))
     row["frames_per_second"] = 1 / row["rangesurf_s"]

@@ -21,8 +21,6 @@ survives, over simulated SR-3000 frames of the arena with range noise only.
 from __future__ import annotations
 
 import os
-import statistics
-import time
 from functools import partial
 from importlib import metadata
 from pathlib import Path
@@ -31,7 +29,7 @@ import numpy as np
 from scipy import ndimage
 
 import rangesurf as rs
-from rangesurf.bench import denoising_quality, machine_description, time_call
+from rangesurf.bench import denoising_quality, time_pair, machine_description, time_call
 from rangesurf.denoise.phase import (
     PHASE_PRESETS,
     _kovesi_band_sum,
@@ -63,20 +61,6 @@ def _filled_frame(sensor: str) -> np.ndarray:
     return image[indices[0], indices[1]]
 
 
-def _paired_medians(ours, peer, *, repeats: int, warmup: int = 2) -> tuple[float, float]:
-    """Median seconds of two calls timed alternately, so that load on the machine hits both alike."""
-    for _ in range(warmup):
-        ours()
-        peer()
-    ours_times, peer_times = [], []
-    for _ in range(repeats):
-        for call, times in ((ours, ours_times), (peer, peer_times)):
-            started = time.perf_counter()
-            call()
-            times.append(time.perf_counter() - started)
-    return statistics.median(ours_times), statistics.median(peer_times)
-
-
 def benchmark_speed(*, repeats: int = 15) -> list[dict]:
     """Ours vs ppdenoise per size and preset."""
     ppdenoise = _ppdenoise()
@@ -91,7 +75,7 @@ def benchmark_speed(*, repeats: int = 15) -> list[dict]:
                                minwavelength=2, sigmaonf=0.55, k=k, softness=1.0)
                 row["peer_s"] = time_call(peer, repeats=repeats, warmup=1)
                 row["speedup"] = row["peer_s"] / row["rangesurf_s"]
-                ours_alternating, peer_alternating = _paired_medians(ours, peer, repeats=repeats)
+                ours_alternating, peer_alternating = time_pair(ours, peer, repeats=repeats)
                 row["speedup_alternating"] = peer_alternating / ours_alternating
                 band = _kovesi_band_sum(image, k=k, scales=scales, mult=mult, orientations=orientations)
                 difference = np.abs(band.astype(np.float64) - peer())

@@ -2,11 +2,12 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import numpy as np
 
-__all__ = ["check_range_image"]
+__all__ = ["check_range_image", "check_range_sigma"]
 
 
 def check_range_image(range_image: Any, name: str = "range image", *, dtype: Any = np.float32) -> np.ndarray:
@@ -34,3 +35,24 @@ def check_range_image(range_image: Any, name: str = "range image", *, dtype: Any
         if n_infinite:
             raise ValueError(f"{name} contains Inf ({n_infinite} values); mark missing returns with NaN")
     return image
+
+
+def check_range_sigma(image: np.ndarray, range_sigma: Any) -> np.ndarray:
+    """Per-pixel noise standard deviation ``(H, W)`` float64 (metres) from a scalar or an array.
+
+    Raises a ValueError unless it is finite and > 0 wherever ``image`` has a
+    return and, as an array, has the image's shape.
+    """
+    if np.ndim(range_sigma) == 0:
+        value = float(range_sigma)
+        if not (math.isfinite(value) and value > 0):
+            raise ValueError(f"range_sigma must be finite and > 0, got {range_sigma}")
+        return np.full(image.shape, value)
+    sigma = np.asarray(range_sigma, dtype=np.float64)
+    if sigma.shape != image.shape:
+        raise ValueError(f"range_sigma shape {sigma.shape} does not match range image shape {image.shape}")
+    with np.errstate(invalid="ignore"):
+        bad = ~np.isnan(image) & ~(np.isfinite(sigma) & (sigma > 0))
+    if bad.any():
+        raise ValueError(f"range_sigma must be finite and > 0 wherever there is a return; {int(bad.sum())} pixels are not")
+    return np.ascontiguousarray(sigma)

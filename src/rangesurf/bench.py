@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["time_call", "benchmark_simulator", "benchmark_readers", "denoising_quality", "run_foundation_benchmarks"]
+__all__ = ["time_call", "time_pair", "benchmark_simulator", "benchmark_readers", "denoising_quality", "run_foundation_benchmarks"]
 
 
 def time_call(function: Callable[[], object], *, repeats: int = 5, warmup: int = 1) -> float:
@@ -29,6 +29,20 @@ def time_call(function: Callable[[], object], *, repeats: int = 5, warmup: int =
         function()
         times.append(time.perf_counter() - started)
     return statistics.median(times)
+
+
+def time_pair(ours: Callable[[], object], peer: Callable[[], object], *, repeats: int, warmup: int = 2) -> tuple[float, float]:
+    """Median seconds of two calls timed alternately, so that load on the machine hits both alike."""
+    for _ in range(warmup):
+        ours()
+        peer()
+    ours_times, peer_times = [], []
+    for _ in range(repeats):
+        for call, times in ((ours, ours_times), (peer, peer_times)):
+            started = time.perf_counter()
+            call()
+            times.append(time.perf_counter() - started)
+    return statistics.median(ours_times), statistics.median(peer_times)
 
 
 def benchmark_simulator(*, frames: int = 10, scene: str = "arena") -> list[dict]:

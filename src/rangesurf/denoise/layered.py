@@ -22,7 +22,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf.denoise.diffusion import anisotropic_diffusion
-from rangesurf._checks import check_range_image
+from rangesurf._checks import check_range_image, check_range_sigma
 
 __all__ = ["layered_denoise", "layer_weights"]
 
@@ -210,18 +210,4 @@ def _boundaries(values: np.ndarray, layers: int | Sequence[float]) -> np.ndarray
 
 
 def _check_sigma(image: np.ndarray, range_sigma: ArrayLike | float | None) -> np.ndarray | None:
-    if range_sigma is None:
-        return None
-    if np.ndim(range_sigma) == 0:
-        value = float(range_sigma)
-        if not (math.isfinite(value) and value > 0):
-            raise ValueError(f"range_sigma must be finite and > 0, got {range_sigma}")
-        return np.full(image.shape, value)
-    sigma = np.asarray(range_sigma, dtype=np.float64)
-    if sigma.shape != image.shape:
-        raise ValueError(f"range_sigma shape {sigma.shape} does not match range image shape {image.shape}")
-    with np.errstate(invalid="ignore"):
-        bad = ~np.isnan(image) & ~(np.isfinite(sigma) & (sigma > 0))
-    if bad.any():
-        raise ValueError(f"range_sigma must be finite and > 0 wherever there is a return; {int(bad.sum())} pixels are not")
-    return sigma
+    return None if range_sigma is None else check_range_sigma(image, range_sigma)

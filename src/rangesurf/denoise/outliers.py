@@ -40,7 +40,7 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rangesurf._checks import check_range_image
+from rangesurf._checks import check_range_image, check_range_sigma
 
 __all__ = ["remove_cutoff", "remove_isolated", "remove_flying_pixels"]
 
@@ -371,22 +371,9 @@ def _check_count(value: int, name: str) -> int:
 
 def _sigma_image(image: np.ndarray, range_sigma: ArrayLike | float | None) -> np.ndarray:
     """Per-pixel noise standard deviation (float64, metres); any value where ``image`` is NaN."""
-    valid = ~np.isnan(image)
     if range_sigma is None:
         return _relative_noise(image) * image.astype(np.float64)
-    if np.ndim(range_sigma) == 0:
-        sigma = float(range_sigma)
-        if not (math.isfinite(sigma) and sigma > 0):
-            raise ValueError(f"range_sigma must be finite and > 0, got {range_sigma}")
-        return np.full(image.shape, sigma)
-    sigma = np.asarray(range_sigma, dtype=np.float64)
-    if sigma.shape != image.shape:
-        raise ValueError(f"range_sigma shape {sigma.shape} does not match range image shape {image.shape}")
-    with np.errstate(invalid="ignore"):
-        bad = valid & ~(np.isfinite(sigma) & (sigma > 0))
-    if bad.any():
-        raise ValueError(f"range_sigma must be finite and > 0 wherever there is a return; {int(bad.sum())} pixels are not")
-    return np.ascontiguousarray(sigma)
+    return check_range_sigma(image, range_sigma)
 
 
 def _relative_noise(image: np.ndarray) -> float:
