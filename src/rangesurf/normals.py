@@ -132,7 +132,7 @@ def estimate_normals(
     >>> rows, cols = np.mgrid[0:40, 0:50].astype(np.float32)
     >>> points = np.dstack([(cols - 25) * 0.01, (rows - 20) * 0.01, np.full_like(rows, 2.0)])
     >>> normals = estimate_normals(points)
-    >>> np.round(normals[20, 25], 3)
+    >>> np.round(normals[20, 25], 3) + 0.0
     array([ 0.,  0., -1.], dtype=float32)
     """
     points = _check_points(points)
@@ -164,7 +164,9 @@ def estimate_normals(
     moments = _integral_moments(points, valid, origin.astype(np.float64))
     jumps = depth_discontinuities(distance, depth_jump=depth_jump, range_sigma=sigma)
     # Chessboard distance to the nearest jump pixel; a window of radius d - 1 holds none.
-    clear = cv2.distanceTransform((~jumps).astype(np.uint8), cv2.DIST_C, 3).astype(np.int32) - 1
+    clear = cv2.distanceTransform((~jumps).astype(np.uint8), cv2.DIST_C, 3)
+    # With no jump at all the transform is "infinite" (a huge float).
+    clear = np.minimum(clear, max(jumps.shape)).astype(np.int32) - 1
     if method == "box":
         radius = np.minimum(clear, window // 2)
     else:

@@ -1,0 +1,73 @@
+"""The result every segmenter returns."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["Segmentation"]
+
+
+@dataclass(frozen=True)
+class Segmentation:
+    """Planar segments of one organized frame.
+
+    Parameters
+    ----------
+    labels : (H, W) int32
+        Segment of every pixel, 1..K, largest segment first; 0 where the pixel
+        belongs to no surface (no return, a depth edge, noise, or a segment
+        too small to keep).
+    planes : (K + 1, 4) float64
+        ``(nx, ny, nz, d)`` of each segment's total-least-squares plane in the
+        sensor frame: ``n . p + d = 0``, unit ``n`` facing the sensor
+        (``d >= 0``). Row 0 is NaN.
+    residuals : (K + 1,) float64
+        Root-mean-square point-to-plane distance of each segment's points
+        (metres); the patch-fit uncertainty (level UL2). Row 0 is NaN.
+    sizes : (K + 1,) int64
+        Pixels per segment; ``sizes[0]`` counts the unlabelled valid pixels.
+    """
+
+    labels: np.ndarray
+    planes: np.ndarray
+    residuals: np.ndarray
+    sizes: np.ndarray
+
+    @property
+    def n_segments(self) -> int:
+        """Number of segments ``K``."""
+        return len(self.planes) - 1
+
+    @classmethod
+    def from_moments(cls, labels: np.ndarray, moments: np.ndarray, unlabelled: int) -> Segmentation:
+        """Build from per-segment point moments ``(K + 1, 10)`` (n, sums of x, y, z, and of their products).
+
+        Segments are renumbered by size, largest first; empty ones are dropped.
+        """
+        counts = moments[1:, 0]
+        keep = np.flatnonzero(counts > 0)
+        keep = keep[np.argsort(-counts[keep], kind="stable")]
+        renumber = np.zeros(len(moments), np.int32)
+        renumber[keep + 1] = np.arange(1, len(keep) + 1, dtype=np.int32)
+        planes = np.full((len(keep) + 1, 4), np.nan)
+        residuals = np.full(len(keep) + 1, np.nan)
+        for new, old in enumerate(keep + 1, start=1):
+            planes[new], residuals[new] = plane_from_moments(moments[old])
+        sizes = np.concatenate([[unlabelled], counts[keep]]).astype(np.int64)
+        return cls(labels=renumber[labels], planes=planes, residuals=residuals, sizes=sizes)
+
+
+def plane_from_moments(moments: np.ndarray) -> tuple[np.ndarray, float]:
+    """Total-least-squares plane ``(nx, ny, nz, d)`` facing the origin, and RMS residual, from 10 moments."""
+    n = moments[0]
+    mean = moments[1:4] / n
+    xx, xy, xz, yy, yz, zz = moments[4:10] / n
+    covariance = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]) - np.outer(mean, mean)
+    values, vectors = np.linalg.eigh(covariance)
+    normal = vectors[:, 0]
+    d = -float(normal @ mean)
+    if d < 0:
+        normal, d = -normal, -d
+    return np.array([*normal, d]), float(np.sqrt(max(values[0], 0.0)))

@@ -1,0 +1,403 @@
+"""Planar region growing on the organized grid (Poppinga et al. 2008).
+
+A region starts at the smoothest pixel not yet taken (its normal agrees best
+with its neighbours'), with that pixel's normal as its plane, and grows
+breadth-first over 4-neighbours.  A neighbour joins when
+
+* its distance to the region's plane is within ``distance_sigmas`` noise
+  sigmas of its range (the sensor model's sigma, so far and dark pixels get
+  the tolerance their noise needs),
+* its normal is within ``max_angle`` of the plane's normal, and
+* it is not across a depth jump from the pixel it is reached from.
+
+The plane is refitted by total least squares from running sums of the
+members' coordinates (Poppinga's incremental fit: O(1) per added point)
+whenever the region has grown by a quarter since the last fit, so it follows
+the data rather than the seed's noisy normal.  Regions smaller than
+``min_size`` pixels are dissolved; their pixels remain free for other
+regions but never seed one again.
+
+Then (1) every region absorbs the free pixels around it that fit its final
+plane (the pixels at its outline whose normals were spoiled by the depth
+edge), and (2) neighbouring regions whose points fit one common plane within
+the noise are merged (an edge or a noise line that split one wall).
+Coplanar regions that do not touch stay separate segments.
+
+References
+----------
+.. [1] J. Poppinga, N. Vaskevicius, A. Birk and K. Pathak, "Fast plane
+   detection and polygonalization in noisy 3D range images", IROS 2008
+   (the thesis's [46]).
+.. [2] The reference thesis, Sections 2.2 and 3.1 (``shared/reference/thesis.md``).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import cv2
+import numba
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rangesurf._checks import check_range_sigma
+from rangesurf.segment._segmentation import Segmentation, plane_from_moments
+
+__all__ = ["grow_regions"]
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+# Refit the plane when the region has grown by this factor since the last fit.
+_REFIT_GROWTH = 1.25
+# Neighbour offsets (row, column) for growing and for region adjacency.
+_FOUR = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
+
+
+def grow_regions(
+    points: ArrayLike,
+    normals: ArrayLike,
+    *,
+    range_sigma: ArrayLike | float,
+    distance_sigmas: float = 3.0,
+    max_angle: float = 20.0,
+    depth_jump: float = 0.05,
+    min_size: int = 50,
+    merge: bool = True,
+) -> Segmentation:
+    """Split an organized frame into planar segments by region growing.
+
+    Parameters
+    ----------
+    points : (H, W, 3) float array
+        Sensor-frame points (metres), NaN where invalid (`RangeFrame.points`,
+        preferably of the denoised range).
+    normals : (H, W, 3) float array
+        Unit normals facing the sensor, NaN where unknown
+        (`rangesurf.normals.estimate_normals`).
+    range_sigma : float or (H, W) array
+        Range noise standard deviation (metres), e.g.
+        ``frame.sensor.range_sigma(frame.range)``; sets the point-to-plane
+        tolerance.
+    distance_sigmas : float
+        Point-to-plane tolerance in noise sigmas.
+    max_angle : float
+        Largest angle (degrees) between a joining pixel's normal and the
+        region's plane normal.
+    depth_jump : float
+        Neighbours whose ranges differ by more than this fraction of the
+        range are never joined (as in `rangesurf.normals.depth_discontinuities`).
+    min_size : int
+        Smallest segment kept (pixels).
+    merge : bool
+        Merge neighbouring segments that lie on one plane.
+
+    Returns
+    -------
+    Segmentation
+        Labels (largest segment first), planes, RMS residuals (UL2), sizes.
+
+    Raises
+    ------
+    ValueError
+        On shapes that are not ``(H, W, 3)`` or disagree, Inf values, or
+        options out of range.
+
+    References
+    ----------
+    .. [1] J. Poppinga, N. Vaskevicius, A. Birk and K. Pathak, "Fast plane
+       detection and polygonalization in noisy 3D range images", IROS 2008.
+
+    Examples
+    --------
+    Two planes meeting at a right angle (a floor and a wall), noise-free:
+
+    >>> import numpy as np
+    >>> from rangesurf.normals import estimate_normals
+    >>> from rangesurf.segment import grow_regions
+    >>> rows, cols = np.mgrid[0:60, 0:80].astype(np.float32)
+    >>> x = (cols - 40) * 0.02
+    >>> z = np.where(cols < 40, 2.0, 2.0 + (cols - 40) * 0.02)
+    >>> points = np.dstack([x, (rows - 30) * 0.02, z]).astype(np.float32)
+    >>> segments = grow_regions(points, estimate_normals(points), range_sigma=0.002)
+    >>> segments.n_segments, sorted(segments.sizes[1:].tolist())
+    (2, [2400, 2400])
+    """
+    points, normals = _check_inputs(points, normals)
+    for name, value in (("distance_sigmas", distance_sigmas), ("depth_jump", depth_jump)):
+        if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be > 0, got {value!r}")
+    if not (isinstance(max_angle, (int, float)) and 0 < max_angle < 90):
+        raise ValueError(f"max_angle must be in (0, 90) degrees, got {max_angle!r}")
+    if isinstance(min_size, bool) or not isinstance(min_size, (int, np.integer)) or min_size < 1:
+        raise ValueError(f"min_size must be an integer >= 1, got {min_size!r}")
+
+    distance = np.sqrt(np.einsum("ijk,ijk->ij", points, points, dtype=np.float64))
+    valid = np.isfinite(distance) & (distance > 0)
+    sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
+    sigma = np.where(valid, sigma, np.nan)
+    growable = valid & np.isfinite(normals).all(axis=2)
+    order = _seed_order(normals, growable)
+    labels, moments = _grow_kernel(
+        points.astype(np.float64),
+        normals.astype(np.float64),
+        distance,
+        sigma,
+        growable,
+        order,
+        float(distance_sigmas),
+        math.cos(math.radians(max_angle)),
+        float(depth_jump),
+        int(min_size),
+    )
+    planes = _planes(moments)
+    _absorb_kernel(points.astype(np.float64), normals.astype(np.float64), distance, sigma, valid, labels, moments, planes,
+                   float(distance_sigmas), math.cos(math.radians(min(2 * max_angle, 80.0))), float(depth_jump))
+    if merge:
+        labels, moments = _merge_coplanar(labels, moments, sigma, float(distance_sigmas), math.cos(math.radians(max_angle)))
+    unlabelled = int(np.count_nonzero(valid & (labels == 0)))
+    return Segmentation.from_moments(labels, moments, unlabelled)
+
+
+# --------------------------------------------------------------------------
+# Input checks.
+# --------------------------------------------------------------------------
+
+
+def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray]:
+    arrays = []
+    for name, value in (("points", points), ("normals", normals)):
+        array = np.asarray(value)
+        if array.ndim != 3 or array.shape[2] != 3:
+            raise ValueError(f"{name} must be an organized (H, W, 3) grid, got shape {array.shape}")
+        if not np.issubdtype(array.dtype, np.floating):
+            raise ValueError(f"{name} must be a float array (NaN where invalid), got dtype {array.dtype}")
+        if np.isinf(array).any():
+            raise ValueError(f"{name} contain Inf; mark missing values with NaN")
+        arrays.append(np.ascontiguousarray(array, dtype=np.float32))
+    if arrays[0].shape != arrays[1].shape:
+        raise ValueError(f"points {arrays[0].shape} and normals {arrays[1].shape} must have the same shape")
+    return arrays[0], arrays[1]
+
+
+# --------------------------------------------------------------------------
+# Seeds, planes and merging.
+# --------------------------------------------------------------------------
+
+
+def _seed_order(normals: np.ndarray, growable: np.ndarray) -> np.ndarray:
+    """Flat indices of growable pixels, smoothest first (largest mean-normal length over 5x5)."""
+    filled = np.where(growable[..., None], normals, 0.0).astype(np.float32)
+    mean = cv2.boxFilter(filled, -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    count = cv2.boxFilter(growable.astype(np.float32), -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        coherence = np.linalg.norm(mean, axis=2) / count
+    coherence = np.where(growable, coherence, -1.0).ravel()
+    order = np.argsort(-coherence, kind="stable")
+    return order[: int(np.count_nonzero(growable))].astype(np.int64)
+
+
+def _planes(moments: np.ndarray) -> np.ndarray:
+    planes = np.full((len(moments), 4), np.nan)
+    for index in np.flatnonzero(moments[:, 0] >= 3):
+        planes[index] = plane_from_moments(moments[index])[0]
+    return planes
+
+
+def _merge_coplanar(
+    labels: np.ndarray, moments: np.ndarray, sigma: np.ndarray, distance_sigmas: float, cos_max_angle: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Merge neighbouring segments whose union fits one plane within the noise (union-find, best pairs first)."""
+    pairs = _neighbour_pairs(labels)
+    if len(pairs) == 0:
+        return labels, moments
+    noise = np.sqrt(np.bincount(labels.ravel(), weights=np.nan_to_num(sigma).ravel() ** 2, minlength=len(moments)))
+    noise /= np.sqrt(np.maximum(moments[:, 0], 1))
+    parent = np.arange(len(moments))
+
+    def root(index: int) -> int:
+        while parent[index] != index:
+            parent[index] = parent[parent[index]]
+            index = parent[index]
+        return index
+
+    merged = moments.copy()
+    candidates = []
+    for a, b in pairs:
+        plane_a, _ = plane_from_moments(moments[a])
+        plane_b, _ = plane_from_moments(moments[b])
+        candidates.append((-abs(float(plane_a[:3] @ plane_b[:3])), int(a), int(b)))
+    for negative_cosine, a, b in sorted(candidates):
+        if -negative_cosine < cos_max_angle:
+            break
+        ra, rb = root(a), root(b)
+        if ra == rb:
+            continue
+        union = merged[ra] + merged[rb]
+        _, rms = plane_from_moments(union)
+        # The union's residual must stay within the noise of its points (RMS of the members' sigmas).
+        union_noise = math.sqrt((noise[ra] ** 2 * merged[ra, 0] + noise[rb] ** 2 * merged[rb, 0]) / union[0])
+        if rms <= distance_sigmas / 2 * union_noise:
+            parent[rb] = ra
+            merged[ra] = union
+            merged[rb] = 0
+            noise[ra] = union_noise
+    roots = np.array([root(index) for index in range(len(moments))])
+    return roots[labels].astype(np.int32), merged
+
+
+def _neighbour_pairs(labels: np.ndarray) -> np.ndarray:
+    """Distinct (a, b), a < b, of segments within two pixels of each other along a row or column."""
+    found = []
+    for step in (1, 2):
+        for a, b in ((labels[:, :-step], labels[:, step:]), (labels[:-step], labels[step:])):
+            mask = (a != b) & (a > 0) & (b > 0)
+            found.append(np.stack([np.minimum(a[mask], b[mask]), np.maximum(a[mask], b[mask])], axis=1))
+    pairs = np.concatenate(found)
+    return np.unique(pairs, axis=0) if len(pairs) else pairs
+
+
+# --------------------------------------------------------------------------
+# Kernels.
+# --------------------------------------------------------------------------
+
+
+@numba.njit(**_JIT, inline="always")
+def _add_moments(moments, region, x, y, z):  # pragma: no cover - compiled
+    moments[region, 0] += 1.0
+    moments[region, 1] += x
+    moments[region, 2] += y
+    moments[region, 3] += z
+    moments[region, 4] += x * x
+    moments[region, 5] += x * y
+    moments[region, 6] += x * z
+    moments[region, 7] += y * y
+    moments[region, 8] += y * z
+    moments[region, 9] += z * z
+
+
+@numba.njit(**_JIT)
+def _fit(moments, region, plane):  # pragma: no cover - compiled
+    """Refit ``plane`` (nx, ny, nz, d) from the region's moments; keeps the old plane if undefined."""
+    n = moments[region, 0]
+    mean = moments[region, 1:4] / n
+    covariance = np.empty((3, 3))
+    covariance[0, 0] = moments[region, 4] / n - mean[0] * mean[0]
+    covariance[0, 1] = covariance[1, 0] = moments[region, 5] / n - mean[0] * mean[1]
+    covariance[0, 2] = covariance[2, 0] = moments[region, 6] / n - mean[0] * mean[2]
+    covariance[1, 1] = moments[region, 7] / n - mean[1] * mean[1]
+    covariance[1, 2] = covariance[2, 1] = moments[region, 8] / n - mean[1] * mean[2]
+    covariance[2, 2] = moments[region, 9] / n - mean[2] * mean[2]
+    values, vectors = np.linalg.eigh(covariance)
+    if not (values[1] > 0.0):
+        return
+    normal = vectors[:, 0]
+    d = -(normal[0] * mean[0] + normal[1] * mean[1] + normal[2] * mean[2])
+    sign = -1.0 if d < 0.0 else 1.0
+    for k in range(3):
+        plane[k] = sign * normal[k]
+    plane[3] = sign * d
+
+
+@numba.njit(**_JIT, inline="always")
+def _joins(points, normals, distance, sigma, plane, qi, qj, ci, cj, distance_sigmas, cos_angle, depth_jump):  # pragma: no cover - compiled
+    gap = abs(distance[qi, qj] - distance[ci, cj])
+    if gap > depth_jump * min(distance[qi, qj], distance[ci, cj]):
+        return False
+    offset = plane[0] * points[qi, qj, 0] + plane[1] * points[qi, qj, 1] + plane[2] * points[qi, qj, 2] + plane[3]
+    if abs(offset) > distance_sigmas * sigma[qi, qj]:
+        return False
+    if cos_angle > -1.0:
+        agreement = plane[0] * normals[qi, qj, 0] + plane[1] * normals[qi, qj, 1] + plane[2] * normals[qi, qj, 2]
+        if not (agreement >= cos_angle):
+            return False
+    return True
+
+
+@numba.njit(**_JIT)
+def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sigmas, cos_angle, depth_jump, min_size):  # pragma: no cover - compiled
+    height, width = growable.shape
+    labels = np.zeros((height, width), np.int32)
+    # Pixels of dissolved regions: free to join, never a seed again.
+    spent = np.zeros((height, width), np.bool_)
+    queue = np.empty(height * width, np.int64)
+    moments = np.zeros((64, 10))
+    plane = np.empty(4)
+    region = 0
+    for seed in order:
+        si, sj = seed // width, seed % width
+        if labels[si, sj] != 0 or spent[si, sj]:
+            continue
+        region += 1
+        if region >= moments.shape[0]:
+            grown = np.zeros((2 * moments.shape[0], 10))
+            grown[: moments.shape[0]] = moments
+            moments = grown
+        for k in range(3):
+            plane[k] = normals[si, sj, k]
+        plane[3] = -(plane[0] * points[si, sj, 0] + plane[1] * points[si, sj, 1] + plane[2] * points[si, sj, 2])
+        labels[si, sj] = region
+        _add_moments(moments, region, points[si, sj, 0], points[si, sj, 1], points[si, sj, 2])
+        queue[0] = seed
+        head, tail = 0, 1
+        next_fit = 8.0
+        while head < tail:
+            ci, cj = queue[head] // width, queue[head] % width
+            head += 1
+            for direction in range(4):
+                qi = ci + _FOUR[direction, 0]
+                qj = cj + _FOUR[direction, 1]
+                if qi < 0 or qj < 0 or qi >= height or qj >= width:
+                    continue
+                if labels[qi, qj] != 0 or not growable[qi, qj]:
+                    continue
+                if not _joins(points, normals, distance, sigma, plane, qi, qj, ci, cj, distance_sigmas, cos_angle, depth_jump):
+                    continue
+                labels[qi, qj] = region
+                _add_moments(moments, region, points[qi, qj, 0], points[qi, qj, 1], points[qi, qj, 2])
+                queue[tail] = qi * width + qj
+                tail += 1
+                if tail >= next_fit:
+                    _fit(moments, region, plane)
+                    next_fit = tail * _REFIT_GROWTH
+        if tail < min_size:
+            for k in range(tail):
+                qi, qj = queue[k] // width, queue[k] % width
+                labels[qi, qj] = 0
+                spent[qi, qj] = True
+            moments[region, :] = 0.0
+            region -= 1
+    return labels, moments[: region + 1].copy()
+
+
+@numba.njit(**_JIT)
+def _absorb_kernel(points, normals, distance, sigma, valid, labels, moments, planes, distance_sigmas, cos_angle, depth_jump):  # pragma: no cover - compiled
+    """Grow every region (breadth-first, all at once) into free pixels that fit its final plane."""
+    height, width = labels.shape
+    queue = np.empty(height * width, np.int64)
+    tail = 0
+    for i in range(height):
+        for j in range(width):
+            if labels[i, j] > 0:
+                queue[tail] = i * width + j
+                tail += 1
+    head = 0
+    while head < tail:
+        ci, cj = queue[head] // width, queue[head] % width
+        head += 1
+        region = labels[ci, cj]
+        plane = planes[region]
+        for direction in range(4):
+            qi = ci + _FOUR[direction, 0]
+            qj = cj + _FOUR[direction, 1]
+            if qi < 0 or qj < 0 or qi >= height or qj >= width:
+                continue
+            if labels[qi, qj] != 0 or not valid[qi, qj]:
+                continue
+            # A missing normal (outline pixel) does not veto; a contradicting one does.
+            check = cos_angle if normals[qi, qj, 0] == normals[qi, qj, 0] else -2.0
+            if not _joins(points, normals, distance, sigma, plane, qi, qj, ci, cj, distance_sigmas, check, depth_jump):
+                continue
+            labels[qi, qj] = region
+            _add_moments(moments, region, points[qi, qj, 0], points[qi, qj, 1], points[qi, qj, 2])
+            queue[tail] = qi * width + qj
+            tail += 1
