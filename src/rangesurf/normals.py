@@ -46,6 +46,8 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_range_sigma
+from rangesurf._planefit import smallest_eigen as _smallest_eigen
+from rangesurf.frame import PinholeProjection
 
 __all__ = ["NORMAL_METHODS", "estimate_normals", "normal_angle_error", "depth_discontinuities"]
 
@@ -60,6 +62,7 @@ _C1 = 1.0
 _C2 = 4.0
 # Variance of z = kappa x^2 / 2 over a uniform window of half-width w is kappa^2 w^4 / 45.
 _PARABOLA_VARIANCE = 45.0
+_FOUR_NEIGHBOURS = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
 
 
 # --------------------------------------------------------------------------
@@ -70,6 +73,7 @@ _PARABOLA_VARIANCE = 45.0
 def estimate_normals(
     points: ArrayLike,
     *,
+    projection: PinholeProjection | None = None,
     method: str = "adaptive",
     window: int = 5,
     max_window: int = 15,
@@ -84,6 +88,11 @@ def estimate_normals(
     points : (H, W, 3) float array
         Points in the sensor frame (metres), NaN where there is no return
         (`RangeFrame.points`).
+    projection : PinholeProjection, optional
+        The camera's intrinsics (``frame.sensor.projection``). For a pinhole
+        camera the plane fit runs on inverse depth, which is affine in pixel
+        coordinates on a plane, with separable filters: several times faster
+        than the general moments path used otherwise.
     method : {"adaptive", "box", "cross"}
         ``"adaptive"``: least-squares plane over a window whose size adapts
         per pixel to noise, sampling density and curvature (Mitra & Nguyen)
@@ -147,22 +156,24 @@ def estimate_normals(
     sigma = None if range_sigma is None else check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
     # A spike would mark its whole neighbourhood as a depth jump and shrink every window near it;
     # it is a reading to ignore, not an edge.
-    zero_sigma = np.zeros(distance.shape) if sigma is None else sigma
-    spikes = _isolated_readings(np.where(valid, distance, np.nan), zero_sigma, depth_jump)
+    sigma_or_nan = np.full(distance.shape, np.nan) if sigma is None else sigma
+    spikes, jumps = _spikes_and_jumps(distance, valid, sigma_or_nan, float(depth_jump))
     if spikes.any():
         valid &= ~spikes
         distance = np.where(valid, distance, np.nan)
         points = np.where(valid[..., None], points, np.nan).astype(np.float32)
 
     if method == "cross":
-        jumps = depth_discontinuities(distance, depth_jump=depth_jump, range_sigma=sigma)
         normals = _cross_normals(points, valid, jumps)
         radius = np.where(valid, 1, -1).astype(np.int16)
+        return (normals, radius) if return_window else normals
+    sizes = (window,) if method == "box" else _window_ladder(window, max_window)
+    if isinstance(projection, PinholeProjection):
+        normals, radius = _inverse_depth_normals(points, distance, valid, jumps, sigma, projection, sizes, float(depth_jump))
         return (normals, radius) if return_window else normals
 
     origin = points[valid].mean(axis=0) if valid.any() else np.zeros(3)
     moments = _integral_moments(points, valid, origin.astype(np.float64))
-    jumps = depth_discontinuities(distance, depth_jump=depth_jump, range_sigma=sigma)
     # Chessboard distance to the nearest jump pixel; a window of radius d - 1 holds none.
     clear = cv2.distanceTransform((~jumps).astype(np.uint8), cv2.DIST_C, 3)
     # With no jump at all the transform is "infinite" (a huge float).
@@ -172,8 +183,7 @@ def estimate_normals(
     else:
         radius = np.minimum(clear, _adaptive_radius(moments, points, distance, valid, sigma, max_window // 2))
     radius = np.where(valid, radius, -1).astype(np.int16)
-    sigma_gate = np.full(distance.shape, np.nan) if sigma is None else sigma
-    normals = _box_normals(moments, points, valid, radius, distance, sigma_gate, float(depth_jump), _GATED_RADIUS)
+    normals = _box_normals(moments, points, valid, radius, distance, sigma_or_nan, float(depth_jump), _GATED_RADIUS)
     return (normals, radius) if return_window else normals
 
 
@@ -185,7 +195,9 @@ def depth_discontinuities(
     Two valid neighbours (4-connected, or two apart across one invalid
     pixel) are on opposite sides of a jump when their ranges differ by more
     than ``depth_jump`` times the nearer range and, given ``range_sigma``, by
-    more than four noise sigmas of their difference.
+    more than four noise sigmas of their difference. A reading that jumps
+    against three or four of its neighbours is a spike (salt-and-pepper),
+    not an edge: it is ignored, and marks no jump.
 
     Parameters
     ----------
@@ -202,44 +214,13 @@ def depth_discontinuities(
     -------
     (H, W) bool
     """
-    image = np.asarray(range_image, dtype=np.float64)
-    sigma = np.zeros(image.shape) if range_sigma is None else np.broadcast_to(np.asarray(range_sigma, float), image.shape)
-    jumps, _ = _jump_pairs(image, sigma, depth_jump)
+    image = np.ascontiguousarray(range_image, dtype=np.float64)
+    if image.ndim != 2:
+        raise ValueError(f"range image must be 2-D (H, W), got shape {image.shape}")
+    valid = np.isfinite(image) & (image > 0)
+    sigma = np.full(image.shape, np.nan) if range_sigma is None else check_range_sigma(np.where(valid, image, np.nan), range_sigma)
+    _, jumps = _spikes_and_jumps(image, valid, sigma, float(depth_jump))
     return jumps
-
-
-def _jump_pairs(image: np.ndarray, sigma: np.ndarray, depth_jump: float) -> tuple[np.ndarray, np.ndarray]:
-    """Jump mask, and per pixel how many of its valid 4-neighbours it jumps against."""
-    jumps = np.zeros(image.shape, bool)
-    against = np.zeros(image.shape, np.int8)
-    for step in (1, 2):
-        for axis in (0, 1):
-            near = [slice(None), slice(None)]
-            far = [slice(None), slice(None)]
-            near[axis] = slice(0, -step)
-            far[axis] = slice(step, None)
-            near, far = tuple(near), tuple(far)
-            a, b = image[near], image[far]
-            with np.errstate(invalid="ignore"):
-                limit = np.maximum(depth_jump * np.minimum(a, b), 4.0 * np.hypot(sigma[near], sigma[far]))
-                jump = np.abs(a - b) > step * limit
-            if step == 2:
-                # Across one missing pixel only: with the middle valid the step-1 test decides.
-                middle = [slice(None), slice(None)]
-                middle[axis] = slice(1, -1)
-                jump &= np.isnan(image[tuple(middle)])
-            else:
-                against[near] += jump
-                against[far] += jump
-            jumps[near] |= jump
-            jumps[far] |= jump
-    return jumps, against
-
-
-def _isolated_readings(image: np.ndarray, sigma: np.ndarray, depth_jump: float) -> np.ndarray:
-    """Readings that jump against at least three of their four neighbours (salt-and-pepper spikes)."""
-    _, against = _jump_pairs(image, sigma, depth_jump)
-    return against >= 3
 
 
 def normal_angle_error(normals: ArrayLike, reference: ArrayLike) -> np.ndarray:
@@ -292,6 +273,106 @@ def _check_window(window: Any, name: str) -> int:
     if isinstance(window, bool) or not isinstance(window, (int, np.integer)) or window < 3 or window % 2 == 0:
         raise ValueError(f"{name} must be an odd integer >= 3, got {window!r}")
     return int(window)
+
+
+# --------------------------------------------------------------------------
+# Pinhole cameras: plane fits on inverse depth with separable filters.
+# --------------------------------------------------------------------------
+
+
+def _window_ladder(window: int, max_window: int) -> tuple[int, ...]:
+    """Odd window sizes from ``window`` to ``max_window``: the smallest, the largest and their middle."""
+    if max_window <= window:
+        return (window,)
+    middle = (window + max_window) // 2 | 1
+    return tuple(sorted({window, middle, max_window}))
+
+
+def _inverse_depth_normals(
+    points: np.ndarray,
+    distance: np.ndarray,
+    valid: np.ndarray,
+    jumps: np.ndarray,
+    sigma: np.ndarray | None,
+    projection: PinholeProjection,
+    sizes: tuple[int, ...],
+    depth_jump: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Normals of a pinhole grid: least squares of inverse depth over the largest clean window that fits.
+
+    On a plane ``n . p + d = 0`` seen through a pinhole, inverse depth is affine
+    in the pixel coordinates, ``1 / z = -(nx u + ny v + nz) / d``; so a window's
+    normal is the gradient of a linear fit of ``1 / z``. Over a full window
+    the fit needs only a box sum and two ramp-weighted sums of ``1 / z``
+    (separable filters), and the residual one box sum of ``(1 / z)^2``. The fit
+    measures errors along the viewing rays, the direction of range noise.
+
+    A window is *clean* when all its pixels are valid and none is at a depth
+    jump. Each pixel takes the largest clean window whose residual is
+    consistent with the noise (larger residual means curvature: a smaller
+    window); a pixel with no clean window (at a jump or a hole) gets a total
+    least-squares fit of the neighbours on its side of the jump.
+    """
+    depth = np.where(valid, points[..., 2], np.nan)
+    inverse = np.zeros(depth.shape, np.float32)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        np.divide(1.0, depth, out=inverse, where=valid & (depth > 0))
+    usable = valid & (depth > 0) & ~jumps
+    # A one-pixel hole (a removed outlier) would spoil every window around it; on a plane the mean
+    # inverse depth of its two opposite neighbours is exact, so it is filled for the sums only.
+    usable = _fill_pinholes(inverse, usable)
+    # Centred on its median, so that float32 sums keep the residual's digits.
+    centre = float(np.median(inverse[usable])) if usable.any() else 0.0
+    centred = np.where(usable, inverse - centre, 0.0).astype(np.float32)
+    stacked = np.dstack([centred, centred * centred, usable.astype(np.float32)])
+    fits = np.empty((len(sizes), 6) + depth.shape, np.float32)
+    for index, size in enumerate(sizes):
+        half = size // 2
+        ones = np.ones(size, np.float32)
+        ramp = np.arange(-half, half + 1, dtype=np.float32)
+        box = cv2.sepFilter2D(stacked, cv2.CV_32F, ones, ones, borderType=cv2.BORDER_CONSTANT)
+        fits[index, 0] = box[..., 0]
+        fits[index, 1] = box[..., 1]
+        fits[index, 2] = box[..., 2]
+        fits[index, 3] = cv2.sepFilter2D(centred, cv2.CV_32F, ramp, ones, borderType=cv2.BORDER_CONSTANT)
+        fits[index, 4] = cv2.sepFilter2D(centred, cv2.CV_32F, ones, ramp, borderType=cv2.BORDER_CONSTANT)
+    fits[:, 5] = 0.0
+    if sigma is None:
+        noise_variance = -1.0 * np.ones(depth.shape)
+    else:
+        # Range noise as noise of 1 / z: d(1/z) = dz / z^2, and dz is about dr z / r.
+        with np.errstate(invalid="ignore"):
+            noise_variance = np.square(sigma * depth / distance / np.square(depth))
+        noise_variance = np.where(valid, noise_variance, 0.0)
+    sizes_array = np.asarray(sizes, np.int64)
+    noise_variance = _estimate_noise_if_unknown(fits, sizes_array, usable, noise_variance)
+    sigma_or_nan = np.full(depth.shape, np.nan) if sigma is None else sigma
+    return _ladder_kernel(
+        fits, sizes_array, centre, noise_variance, points, valid, distance, sigma_or_nan, depth_jump,
+        float(projection.fx), float(projection.fy), float(projection.cx), float(projection.cy), _GATED_RADIUS,
+    )
+
+
+def _estimate_noise_if_unknown(fits: np.ndarray, sizes: np.ndarray, usable: np.ndarray, noise_variance: np.ndarray) -> np.ndarray:
+    """Per-pixel variance of 1/z noise; without a sensor model, the median residual of the smallest clean windows."""
+    if noise_variance.min() >= 0:
+        return noise_variance
+    size = int(sizes[0])
+    count = fits[0, 2]
+    clean = usable & (count == size * size)
+    if not clean.any():
+        return np.zeros(usable.shape)
+    residual = _residual(fits[0], size)[clean] / (size * size - 3)
+    return np.full(usable.shape, float(np.median(residual)))
+
+
+def _residual(fit: np.ndarray, size: int) -> np.ndarray:
+    """Sum of squared residuals of the affine fit over full windows (box, squares, count, ramps)."""
+    n = float(size * size)
+    half = size // 2
+    ramp_energy = size * half * (half + 1) * (2 * half + 1) / 3.0
+    total, squares, ramp_s, ramp_t = (fit[k].astype(np.float64) for k in (0, 1, 3, 4))
+    return np.maximum(squares - total * total / n - (ramp_s * ramp_s + ramp_t * ramp_t) / ramp_energy, 0.0)
 
 
 # --------------------------------------------------------------------------
@@ -392,64 +473,6 @@ def _window_sums(table, i, j, radius, sums):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _smallest_eigen(sums, normal):  # pragma: no cover - compiled
-    """Plane fit of window sums: unit normal of least variance into ``normal``; returns that variance.
-
-    Closed-form eigenvalues of the 3x3 covariance (trigonometric method), the
-    eigenvector from the largest cross product of two rows of ``C - lambda I``.
-    Returns -1 when the fit is undefined (fewer than 3 points, or no plane).
-    """
-    n = sums[0]
-    if n < 3.0:
-        return -1.0
-    mx = sums[1] / n
-    my = sums[2] / n
-    mz = sums[3] / n
-    a00 = sums[4] / n - mx * mx
-    a01 = sums[5] / n - mx * my
-    a02 = sums[6] / n - mx * mz
-    a11 = sums[7] / n - my * my
-    a12 = sums[8] / n - my * mz
-    a22 = sums[9] / n - mz * mz
-    off = a01 * a01 + a02 * a02 + a12 * a12
-    q = (a00 + a11 + a22) / 3.0
-    b00 = a00 - q
-    b11 = a11 - q
-    b22 = a22 - q
-    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * off
-    if p2 <= 1e-30 * (q * q + 1e-300):
-        return -1.0
-    p = math.sqrt(p2 / 6.0)
-    det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)) / (p * p * p)
-    half = min(max(det / 2.0, -1.0), 1.0)
-    phi = math.acos(half) / 3.0
-    smallest = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
-    # Rows of C - smallest * I; the normal is orthogonal to all of them.
-    r0x, r0y, r0z = a00 - smallest, a01, a02
-    r1x, r1y, r1z = a01, a11 - smallest, a12
-    r2x, r2y, r2z = a02, a12, a22 - smallest
-    c0x, c0y, c0z = r0y * r1z - r0z * r1y, r0z * r1x - r0x * r1z, r0x * r1y - r0y * r1x
-    c1x, c1y, c1z = r0y * r2z - r0z * r2y, r0z * r2x - r0x * r2z, r0x * r2y - r0y * r2x
-    c2x, c2y, c2z = r1y * r2z - r1z * r2y, r1z * r2x - r1x * r2z, r1x * r2y - r1y * r2x
-    d0 = c0x * c0x + c0y * c0y + c0z * c0z
-    d1 = c1x * c1x + c1y * c1y + c1z * c1z
-    d2 = c2x * c2x + c2y * c2y + c2z * c2z
-    if d0 >= d1 and d0 >= d2:
-        vx, vy, vz, d = c0x, c0y, c0z, d0
-    elif d1 >= d2:
-        vx, vy, vz, d = c1x, c1y, c1z, d1
-    else:
-        vx, vy, vz, d = c2x, c2y, c2z, d2
-    if d <= 0.0:
-        return -1.0
-    norm = math.sqrt(d)
-    normal[0] = vx / norm
-    normal[1] = vy / norm
-    normal[2] = vz / norm
-    return max(smallest, 0.0)
-
-
-@numba.njit(**_JIT)
 def _fixed_window_fit(table, radius):  # pragma: no cover - compiled
     height = table.shape[0] - 1
     width = table.shape[1] - 1
@@ -523,6 +546,145 @@ def _gated_sums(points, valid, distance, sigma, depth_jump, i, j, radius, sums):
 
 
 @numba.njit(**_JIT)
+def _spikes_and_jumps(distance, valid, sigma, depth_jump):  # pragma: no cover - compiled
+    """Spikes (jump against >= 3 of 4 neighbours), then jumps among the remaining readings."""
+    height, width = valid.shape
+    # Squared noise limit of each pixel (16 sigma^2, 0 without a model) and the jump of every pair.
+    noise = np.zeros((height, width), np.float32)
+    for i in range(height):
+        for j in range(width):
+            if sigma[i, j] == sigma[i, j]:
+                noise[i, j] = 16.0 * sigma[i, j] * sigma[i, j]
+    across = np.zeros((height, width), np.bool_)  # (i, j) - (i, j + 1)
+    down = np.zeros((height, width), np.bool_)  # (i, j) - (i + 1, j)
+    for i in range(height):
+        for j in range(width):
+            if not valid[i, j]:
+                continue
+            if j + 1 < width and valid[i, j + 1]:
+                across[i, j] = _is_jump(distance, noise, depth_jump, i, j, i, j + 1, 1.0)
+            if i + 1 < height and valid[i + 1, j]:
+                down[i, j] = _is_jump(distance, noise, depth_jump, i, j, i + 1, j, 1.0)
+    spikes = np.zeros((height, width), np.bool_)
+    for i in range(height):
+        for j in range(width):
+            count = across[i, j] + down[i, j]
+            if j > 0:
+                count += across[i, j - 1]
+            if i > 0:
+                count += down[i - 1, j]
+            spikes[i, j] = count >= 3
+    jumps = np.zeros((height, width), np.bool_)
+    for i in range(height):
+        for j in range(width):
+            if not valid[i, j] or spikes[i, j]:
+                continue
+            if across[i, j] and not spikes[i, j + 1]:
+                jumps[i, j] = True
+                jumps[i, j + 1] = True
+            if down[i, j] and not spikes[i + 1, j]:
+                jumps[i, j] = True
+                jumps[i + 1, j] = True
+            # Across one missing pixel.
+            if j + 2 < width and not valid[i, j + 1] and valid[i, j + 2] and not spikes[i, j + 2]:
+                if _is_jump(distance, noise, depth_jump, i, j, i, j + 2, 2.0):
+                    jumps[i, j] = True
+                    jumps[i, j + 2] = True
+            if i + 2 < height and not valid[i + 1, j] and valid[i + 2, j] and not spikes[i + 2, j]:
+                if _is_jump(distance, noise, depth_jump, i, j, i + 2, j, 2.0):
+                    jumps[i, j] = True
+                    jumps[i + 2, j] = True
+    return spikes, jumps
+
+
+@numba.njit(**_JIT, inline="always")
+def _is_jump(distance, noise, depth_jump, i, j, qi, qj, step):  # pragma: no cover - compiled
+    a = distance[i, j]
+    b = distance[qi, qj]
+    relative = depth_jump * min(a, b)
+    gap = (a - b) / step
+    return gap * gap > max(relative * relative, noise[i, j] + noise[qi, qj])
+
+
+@numba.njit(**_JIT)
+def _fill_pinholes(inverse, usable):  # pragma: no cover - compiled
+    """Fill unusable pixels whose left and right (or upper and lower) neighbours are usable, in place."""
+    height, width = usable.shape
+    filled = usable.copy()
+    for i in range(height):
+        for j in range(width):
+            if usable[i, j]:
+                continue
+            if 0 < j < width - 1 and usable[i, j - 1] and usable[i, j + 1]:
+                inverse[i, j] = 0.5 * (inverse[i, j - 1] + inverse[i, j + 1])
+                filled[i, j] = True
+            elif 0 < i < height - 1 and usable[i - 1, j] and usable[i + 1, j]:
+                inverse[i, j] = 0.5 * (inverse[i - 1, j] + inverse[i + 1, j])
+                filled[i, j] = True
+    return filled
+
+
+@numba.njit(**_JIT)
+def _ladder_kernel(fits, sizes, centre, noise_variance, points, valid, distance, sigma, depth_jump, fx, fy, cx, cy, gated_radius):  # pragma: no cover - compiled
+    height, width = valid.shape
+    normals = np.full((height, width, 3), np.nan, dtype=np.float32)
+    radius = np.full((height, width), -1, np.int16)
+    sums = np.zeros(10)
+    normal = np.zeros(3)
+    n_sizes = sizes.shape[0]
+    for i in range(height):
+        for j in range(width):
+            if not valid[i, j]:
+                continue
+            done = False
+            for index in range(n_sizes - 1, -1, -1):
+                size = sizes[index]
+                n = float(size * size)
+                if fits[index, 2, i, j] != n:
+                    continue
+                half = size // 2
+                energy = size * half * (half + 1) * (2 * half + 1) / 3.0
+                total = float(fits[index, 0, i, j])
+                ramp_s = float(fits[index, 3, i, j])
+                ramp_t = float(fits[index, 4, i, j])
+                if index > 0:
+                    residual = float(fits[index, 1, i, j]) - total * total / n - (ramp_s * ramp_s + ramp_t * ramp_t) / energy
+                    allowed = noise_variance[i, j] * (n - 3.0) * (1.0 + 3.0 * math.sqrt(2.0 / (n - 3.0)))
+                    if residual > allowed:
+                        continue
+                # 1/z = a s + b t + c around the pixel; as A u + B v + C the plane's normal is -(A, B, C).
+                a = ramp_s / energy
+                b = ramp_t / energy
+                c = total / n + centre
+                u0 = (j - cx) / fx
+                v0 = (i - cy) / fy
+                big_a = a * fx
+                big_b = b * fy
+                big_c = c - big_a * u0 - big_b * v0
+                norm = math.sqrt(big_a * big_a + big_b * big_b + big_c * big_c)
+                if norm == 0.0:
+                    break
+                if big_c * points[i, j, 2] + big_a * points[i, j, 0] + big_b * points[i, j, 1] < 0.0:
+                    norm = -norm
+                normals[i, j, 0] = -big_a / norm
+                normals[i, j, 1] = -big_b / norm
+                normals[i, j, 2] = -big_c / norm
+                radius[i, j] = half
+                done = True
+                break
+            if done:
+                continue
+            _gated_sums(points, valid, distance, sigma, depth_jump, i, j, gated_radius, sums)
+            if _smallest_eigen(sums, normal) < 0.0:
+                continue
+            facing = normal[0] * points[i, j, 0] + normal[1] * points[i, j, 1] + normal[2] * points[i, j, 2]
+            sign = -1.0 if facing > 0.0 else 1.0
+            for k in range(3):
+                normals[i, j, k] = sign * normal[k]
+    return normals, radius
+
+
+@numba.njit(**_JIT)
 def _cross_normals(points, valid, jumps):  # pragma: no cover - compiled
     height, width = valid.shape
     normals = np.full((height, width, 3), np.nan, dtype=np.float32)
@@ -550,7 +712,7 @@ def _cross_normals(points, valid, jumps):  # pragma: no cover - compiled
     return normals
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_JIT, inline="always")
 def _difference(points, valid, jumps, i, j, di, dj, out):  # pragma: no cover - compiled
     """Central difference along (di, dj), one-sided where a neighbour is missing or across a jump."""
     height, width = valid.shape

@@ -6,6 +6,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rangesurf._planefit import planes_from_moments
+
 __all__ = ["Segmentation"]
 
 
@@ -53,21 +55,6 @@ class Segmentation:
         renumber[keep + 1] = np.arange(1, len(keep) + 1, dtype=np.int32)
         planes = np.full((len(keep) + 1, 4), np.nan)
         residuals = np.full(len(keep) + 1, np.nan)
-        for new, old in enumerate(keep + 1, start=1):
-            planes[new], residuals[new] = plane_from_moments(moments[old])
+        planes[1:], residuals[1:] = planes_from_moments(moments[keep + 1])
         sizes = np.concatenate([[unlabelled], counts[keep]]).astype(np.int64)
         return cls(labels=renumber[labels], planes=planes, residuals=residuals, sizes=sizes)
-
-
-def plane_from_moments(moments: np.ndarray) -> tuple[np.ndarray, float]:
-    """Total-least-squares plane ``(nx, ny, nz, d)`` facing the origin, and RMS residual, from 10 moments."""
-    n = moments[0]
-    mean = moments[1:4] / n
-    xx, xy, xz, yy, yz, zz = moments[4:10] / n
-    covariance = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]]) - np.outer(mean, mean)
-    values, vectors = np.linalg.eigh(covariance)
-    normal = vectors[:, 0]
-    d = -float(normal @ mean)
-    if d < 0:
-        normal, d = -normal, -d
-    return np.array([*normal, d]), float(np.sqrt(max(values[0], 0.0)))

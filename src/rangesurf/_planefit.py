@@ -1,0 +1,114 @@
+"""Plane fits from point moments, shared by the normal estimator and the segmenters.
+
+Moments are the 10 sums ``(n, x, y, z, xx, xy, xz, yy, yz, zz)`` of a point
+set; a plane fit from them costs the same for 3 points or 3 million.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numba
+import numpy as np
+
+__all__ = ["smallest_eigen", "planes_from_moments"]
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+@numba.njit(**_JIT)
+def smallest_eigen(sums, normal):  # pragma: no cover - compiled
+    """Plane fit of window sums: unit normal of least variance into ``normal``; returns that variance.
+
+    Closed-form eigenvalues of the 3x3 covariance (trigonometric method), the
+    eigenvector from the largest cross product of two rows of ``C - lambda I``.
+    Returns -1 when the fit is undefined (fewer than 3 points, or no plane).
+    """
+    n = sums[0]
+    if n < 3.0:
+        return -1.0
+    mx = sums[1] / n
+    my = sums[2] / n
+    mz = sums[3] / n
+    a00 = sums[4] / n - mx * mx
+    a01 = sums[5] / n - mx * my
+    a02 = sums[6] / n - mx * mz
+    a11 = sums[7] / n - my * my
+    a12 = sums[8] / n - my * mz
+    a22 = sums[9] / n - mz * mz
+    off = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    b00 = a00 - q
+    b11 = a11 - q
+    b22 = a22 - q
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * off
+    if p2 <= 1e-30 * (q * q + 1e-300):
+        return -1.0
+    p = math.sqrt(p2 / 6.0)
+    det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)) / (p * p * p)
+    half = min(max(det / 2.0, -1.0), 1.0)
+    phi = math.acos(half) / 3.0
+    smallest = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    # Rows of C - smallest * I; the normal is orthogonal to all of them.
+    r0x, r0y, r0z = a00 - smallest, a01, a02
+    r1x, r1y, r1z = a01, a11 - smallest, a12
+    r2x, r2y, r2z = a02, a12, a22 - smallest
+    c0x, c0y, c0z = r0y * r1z - r0z * r1y, r0z * r1x - r0x * r1z, r0x * r1y - r0y * r1x
+    c1x, c1y, c1z = r0y * r2z - r0z * r2y, r0z * r2x - r0x * r2z, r0x * r2y - r0y * r2x
+    c2x, c2y, c2z = r1y * r2z - r1z * r2y, r1z * r2x - r1x * r2z, r1x * r2y - r1y * r2x
+    d0 = c0x * c0x + c0y * c0y + c0z * c0z
+    d1 = c1x * c1x + c1y * c1y + c1z * c1z
+    d2 = c2x * c2x + c2y * c2y + c2z * c2z
+    if d0 >= d1 and d0 >= d2:
+        vx, vy, vz, d = c0x, c0y, c0z, d0
+    elif d1 >= d2:
+        vx, vy, vz, d = c1x, c1y, c1z, d1
+    else:
+        vx, vy, vz, d = c2x, c2y, c2z, d2
+    if d <= 0.0:
+        return -1.0
+    norm = math.sqrt(d)
+    normal[0] = vx / norm
+    normal[1] = vy / norm
+    normal[2] = vz / norm
+    return max(smallest, 0.0)
+
+
+def planes_from_moments(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Total-least-squares planes of many point sets at once.
+
+    Parameters
+    ----------
+    moments : (K, 10) float64
+        One row of moments per point set.
+
+    Returns
+    -------
+    planes : (K, 4) float64
+        ``(nx, ny, nz, d)`` with ``n . p + d = 0``, unit ``n`` facing the
+        origin (``d >= 0``); NaN for sets of fewer than 3 points.
+    rms : (K,) float64
+        Root-mean-square point-to-plane distance; NaN likewise.
+    """
+    moments = np.atleast_2d(np.asarray(moments, dtype=np.float64))
+    count = moments[:, 0]
+    planes = np.full((len(moments), 4), np.nan)
+    rms = np.full(len(moments), np.nan)
+    usable = count >= 3
+    if not usable.any():
+        return planes, rms
+    m = moments[usable]
+    mean = m[:, 1:4] / m[:, :1]
+    xx, xy, xz, yy, yz, zz = (m[:, k] / m[:, 0] for k in range(4, 10))
+    covariance = np.stack(
+        [np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)], axis=1
+    ) - mean[:, :, None] * mean[:, None, :]
+    values, vectors = np.linalg.eigh(covariance)
+    normal = vectors[:, :, 0]
+    d = -np.einsum("kj,kj->k", normal, mean)
+    flip = d < 0
+    normal[flip] *= -1
+    d[flip] *= -1
+    planes[usable] = np.column_stack([normal, d])
+    rms[usable] = np.sqrt(np.maximum(values[:, 0], 0.0))
+    return planes, rms
