@@ -26,7 +26,9 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["SegmentationScores", "evaluate_segmentation"]
+from rangesurf.simulate import GroundTruth
+
+__all__ = ["SegmentationScores", "evaluate_segmentation", "truth_labels"]
 
 # The tolerance is compared as a fraction num / den in integer arithmetic, so
 # that an overlap of exactly T * M pixels counts (0.7 * 10 is 7.000000000000001
@@ -500,3 +502,60 @@ def _group(keys: list[int], members: list[int]) -> tuple[tuple[int, tuple[int, .
     for key, member in zip(keys, members):
         groups.setdefault(key, []).append(member)
     return tuple((key, tuple(sorted(groups[key]))) for key in sorted(groups))
+
+
+def truth_labels(
+    truth: GroundTruth, rays: np.ndarray, *, max_incidence: float = 80.0, planar_only: bool = True
+) -> np.ndarray:
+    """Ground-truth label image of a simulated frame for `evaluate_segmentation`.
+
+    Hoover et al.'s ground truth labels only what a range sensor can
+    measure; pixels it cannot are left unlabelled and do not count. Here
+    that means:
+
+    * pixels whose true incidence angle exceeds ``max_incidence`` degrees (a
+      surface seen edge-on: one pixel's footprint spans many times the pixel
+      pitch in depth, so neither its position nor its normal is measured);
+    * mixed (flying) pixels and salt-and-pepper readings;
+    * with ``planar_only``, surfaces that are not planes (the cylinder), for
+      scoring a plane segmentation.
+
+    Parameters
+    ----------
+    truth : GroundTruth
+        From `rangesurf.simulate.simulate_frame`.
+    rays : (H, W, 3) float array
+        Unit viewing directions of the frame (``frame.rays``).
+    max_incidence : float
+        Degrees in (0, 90].
+    planar_only : bool
+        Keep only planar surfaces.
+
+    Returns
+    -------
+    (H, W) int32
+        Surface ids, 0 where unlabelled.
+
+    Examples
+    --------
+    >>> from rangesurf import simulate
+    >>> frames, truths = simulate.simulate_sequence("arena", "sr3000", n_frames=1)
+    >>> labels = truth_labels(truths[0], frames[0].rays)
+    >>> bool((labels > 0).mean() > 0.8)
+    True
+    """
+    if not (isinstance(max_incidence, (int, float)) and 0 < max_incidence <= 90):
+        raise ValueError(f"max_incidence must be in (0, 90] degrees, got {max_incidence!r}")
+    labels = np.asarray(truth.surface_id, dtype=np.int32).copy()
+    rays = np.asarray(rays, dtype=np.float64)
+    if rays.shape != labels.shape + (3,):
+        raise ValueError(f"rays must have shape {labels.shape + (3,)} to match the ground truth, got {rays.shape}")
+    with np.errstate(invalid="ignore"):
+        cosine = np.abs(np.einsum("ijk,ijk->ij", truth.normals.astype(np.float64), rays))
+    grazing = ~(cosine >= math.cos(math.radians(max_incidence)))
+    labels[grazing | truth.mixed | truth.outlier] = 0
+    if planar_only:
+        planar = np.isfinite(truth.planes[:, 0])
+        labels[~planar[np.clip(labels, 0, len(planar) - 1)] | (labels >= len(planar))] = 0
+    return labels
+

@@ -14,8 +14,8 @@ The plane is refitted by total least squares from running sums of the
 members' coordinates (Poppinga's incremental fit: O(1) per added point)
 whenever the region has grown by a quarter since the last fit, so it follows
 the data rather than the seed's noisy normal.  Regions smaller than
-``min_size`` pixels are dissolved; their pixels remain free for other
-regions but never seed one again.
+``min_size`` pixels are dissolved; their pixels remain free, and only the
+failed seed never seeds again.
 
 Then (1) every region absorbs the free pixels around it that fit its final
 plane (the pixels at its outline whose normals were spoiled by the depth
@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_range_sigma
-from rangesurf._planefit import planes_from_moments, smallest_eigen
+from rangesurf._planefit import planes_from_moments
 from rangesurf.segment._segmentation import Segmentation
 
 __all__ = ["grow_regions"]
@@ -50,6 +50,10 @@ __all__ = ["grow_regions"]
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 # Refit the plane when the region has grown by this factor since the last fit.
 _REFIT_GROWTH = 1.25
+# First refit (points): a plane through fewer noisy points is worse than the seed's normal.
+_FIRST_FIT = 16
+# In-plane spread (noise sigmas, both directions) a region needs before its own fit sets its normal.
+_SUPPORT_SIGMAS = 4.0
 # Neighbour offsets (row, column) for growing and for region adjacency.
 _FOUR = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
 
@@ -137,7 +141,7 @@ def grow_regions(
     sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
     sigma = np.where(valid, sigma, np.nan)
     growable = valid & np.isfinite(normals).all(axis=2)
-    order = _seed_order(normals, growable)
+    order = _seed_order(normals, growable, math.cos(math.radians(max_angle / 2)))
     labels, moments = _grow_kernel(
         points,
         normals,
@@ -149,7 +153,11 @@ def grow_regions(
         math.cos(math.radians(max_angle)),
         float(depth_jump),
         int(min_size),
+        float(_FIRST_FIT),
     )
+    planes, _ = planes_from_moments(moments)
+    _refine_boundaries(points, distance, sigma, labels, planes, float(depth_jump))
+    moments = _label_moments(points, labels, len(moments))
     planes, _ = planes_from_moments(moments)
     _absorb_kernel(points, normals, distance, sigma, valid, labels, moments, planes,
                    float(distance_sigmas), math.cos(math.radians(min(2 * max_angle, 80.0))), float(depth_jump))
@@ -185,17 +193,24 @@ def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------
 
 
-def _seed_order(normals: np.ndarray, growable: np.ndarray) -> np.ndarray:
-    """Flat indices of growable pixels, smoothest first (largest mean-normal length over 5x5)."""
+def _seed_order(normals: np.ndarray, growable: np.ndarray, min_coherence: float) -> np.ndarray:
+    """Flat indices of the pixels that may seed a region, smoothest first.
+
+    Smoothness is the length of the mean unit normal over 5x5 (1 on a
+    plane). Pixels below ``min_coherence`` (on a crease, which smoothing
+    rounds into a bevel, or at an edge) never seed: a region started there
+    would be a sliver between two faces. They can still join a region.
+    """
     filled = np.where(growable[..., None], normals, 0.0).astype(np.float32)
     mean = cv2.boxFilter(filled, -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
     count = cv2.boxFilter(growable.astype(np.float32), -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
     with np.errstate(divide="ignore", invalid="ignore"):
         coherence = np.linalg.norm(mean, axis=2) / count
+    seeds = growable & (coherence >= min_coherence)
     # 16-bit keys: numpy sorts them by radix sort, several times faster than a float argsort.
-    key = np.where(growable, np.round((1.0 - np.clip(coherence, 0.0, 1.0)) * 65534.0), 65535.0).astype(np.uint16)
+    key = np.where(seeds, np.round((1.0 - np.clip(coherence, 0.0, 1.0)) * 65534.0), 65535.0).astype(np.uint16)
     order = np.argsort(key.ravel(), kind="stable")
-    return order[: int(np.count_nonzero(growable))].astype(np.int64)
+    return order[: int(np.count_nonzero(seeds))].astype(np.int64)
 
 
 def _merge_coplanar(
@@ -269,16 +284,34 @@ def _add_moments(moments, region, x, y, z):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _fit(moments, region, plane, normal):  # pragma: no cover - compiled
-    """Refit ``plane`` (nx, ny, nz, d) from the region's moments; keeps the old plane if undefined."""
-    if smallest_eigen(moments[region], normal) < 0.0:
-        return
+def _fit(moments, region, plane, noise):  # pragma: no cover - compiled
+    """Refit ``plane`` (nx, ny, nz, d) from the region's moments.
+
+    The fitted normal replaces the current one only once the region spreads
+    over more than ``_SUPPORT_SIGMAS`` noise sigmas in both in-plane
+    directions; before that, a fit through a small noisy patch is worse than
+    the seed pixel's normal (estimated over a whole window), so only the
+    offset is moved to the region's centroid.
+    """
     n = moments[region, 0]
-    d = -(normal[0] * moments[region, 1] + normal[1] * moments[region, 2] + normal[2] * moments[region, 3]) / n
-    sign = -1.0 if d < 0.0 else 1.0
-    for k in range(3):
-        plane[k] = sign * normal[k]
-    plane[3] = sign * d
+    mean = moments[region, 1:4] / n
+    covariance = np.empty((3, 3))
+    covariance[0, 0] = moments[region, 4] / n - mean[0] * mean[0]
+    covariance[0, 1] = covariance[1, 0] = moments[region, 5] / n - mean[0] * mean[1]
+    covariance[0, 2] = covariance[2, 0] = moments[region, 6] / n - mean[0] * mean[2]
+    covariance[1, 1] = moments[region, 7] / n - mean[1] * mean[1]
+    covariance[1, 2] = covariance[2, 1] = moments[region, 8] / n - mean[1] * mean[2]
+    covariance[2, 2] = moments[region, 9] / n - mean[2] * mean[2]
+    values, vectors = np.linalg.eigh(covariance)
+    if values[1] > (_SUPPORT_SIGMAS * noise) ** 2:
+        for k in range(3):
+            plane[k] = vectors[k, 0]
+    d = -(plane[0] * mean[0] + plane[1] * mean[1] + plane[2] * mean[2])
+    if d < 0.0:
+        for k in range(3):
+            plane[k] = -plane[k]
+        d = -d
+    plane[3] = d
 
 
 @numba.njit(**_JIT, inline="always")
@@ -297,7 +330,7 @@ def _joins(points, normals, distance, sigma, plane, qi, qj, ci, cj, distance_sig
 
 
 @numba.njit(**_JIT)
-def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sigmas, cos_angle, depth_jump, min_size):  # pragma: no cover - compiled
+def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sigmas, cos_angle, depth_jump, min_size, first_fit):  # pragma: no cover - compiled
     height, width = growable.shape
     labels = np.zeros((height, width), np.int32)
     # Pixels of dissolved regions: free to join, never a seed again.
@@ -307,7 +340,6 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
     queue_j = np.empty(height * width, np.int32)
     moments = np.zeros((64, 10))
     plane = np.empty(4)
-    normal = np.empty(3)
     region = 0
     for seed in order:
         si, sj = seed // width, seed % width
@@ -322,12 +354,13 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
             plane[k] = normals[si, sj, k]
         plane[3] = -(plane[0] * points[si, sj, 0] + plane[1] * points[si, sj, 1] + plane[2] * points[si, sj, 2])
         n0, n1, n2, n3 = plane[0], plane[1], plane[2], plane[3]
+        seed_noise = sigma[si, sj]
         labels[si, sj] = region
         _add_moments(moments, region, points[si, sj, 0], points[si, sj, 1], points[si, sj, 2])
         queue_i[0] = si
         queue_j[0] = sj
         head, tail = 0, 1
-        next_fit = 8.0
+        next_fit = first_fit
         while head < tail:
             ci = queue_i[head]
             cj = queue_j[head]
@@ -357,16 +390,74 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
                 queue_j[tail] = qj
                 tail += 1
                 if tail >= next_fit:
-                    _fit(moments, region, plane, normal)
+                    _fit(moments, region, plane, seed_noise)
                     n0, n1, n2, n3 = plane[0], plane[1], plane[2], plane[3]
                     next_fit = tail * _REFIT_GROWTH
         if tail < min_size:
+            # Only the seed is spent: a failed start (a noisy seed normal) must not
+            # take its neighbours' chance to seed a region of their own.
             for k in range(tail):
                 labels[queue_i[k], queue_j[k]] = 0
-                spent[queue_i[k], queue_j[k]] = True
+            spent[si, sj] = True
             moments[region, :] = 0.0
             region -= 1
     return labels, moments[: region + 1].copy()
+
+
+@numba.njit(**_JIT)
+def _refine_boundaries(points, distance, sigma, labels, planes, depth_jump):  # pragma: no cover - compiled
+    """Move each boundary pixel to the neighbouring segment whose plane it fits best (in place).
+
+    Growing is greedy: the region that reaches a pixel first keeps it, so
+    near a crease or a small surface some pixels end up on the wrong side.
+    A pixel with a differently labelled 8-neighbour is given to whichever of
+    the segments around it (its own included) has the plane nearest to it,
+    in noise sigmas, unless that neighbour is across a depth jump.
+    """
+    height, width = labels.shape
+    original = labels.copy()
+    for i in range(height):
+        for j in range(width):
+            own = original[i, j]
+            if own <= 0:
+                continue
+            x = points[i, j, 0]
+            y = points[i, j, 1]
+            z = points[i, j, 2]
+            best = own
+            best_distance = abs(planes[own, 0] * x + planes[own, 1] * y + planes[own, 2] * z + planes[own, 3])
+            if not (best_distance == best_distance):
+                continue
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    qi = i + di
+                    qj = j + dj
+                    if qi < 0 or qj < 0 or qi >= height or qj >= width:
+                        continue
+                    other = original[qi, qj]
+                    if other <= 0 or other == best or other == own:
+                        continue
+                    if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
+                        continue
+                    gap = abs(planes[other, 0] * x + planes[other, 1] * y + planes[other, 2] * z + planes[other, 3])
+                    if gap < best_distance:
+                        best = other
+                        best_distance = gap
+            if best != own and best_distance <= 3.0 * sigma[i, j]:
+                labels[i, j] = best
+
+
+@numba.njit(**_JIT)
+def _label_moments(points, labels, n_labels):  # pragma: no cover - compiled
+    """Point moments (n_labels, 10) of every label (row 0: unlabelled, left empty)."""
+    height, width = labels.shape
+    moments = np.zeros((n_labels, 10))
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label > 0:
+                _add_moments(moments, label, points[i, j, 0], points[i, j, 1], points[i, j, 2])
+    return moments
 
 
 @numba.njit(**_JIT)
