@@ -124,8 +124,11 @@ def grow_regions(
     >>> z = np.where(cols < 40, 2.0, 2.0 + (cols - 40) * 0.02)
     >>> points = np.dstack([x, (rows - 30) * 0.02, z]).astype(np.float32)
     >>> segments = grow_regions(points, estimate_normals(points), range_sigma=0.002)
-    >>> segments.n_segments, sorted(segments.sizes[1:].tolist())
-    (2, [2400, 2400])
+    >>> segments.n_segments
+    2
+    >>> np.round(segments.planes[1:], 3) + 0.0  # n . p + d = 0 of the wall (z = 2) and the slanted face
+    array([[ 0.   ,  0.   , -1.   ,  2.   ],
+           [ 0.707,  0.   , -0.707,  1.414]])
     """
     points, normals = _check_inputs(points, normals)
     for name, value in (("distance_sigmas", distance_sigmas), ("depth_jump", depth_jump)):
