@@ -774,3 +774,24 @@ def _box_normals_reference(points: np.ndarray, radius: np.ndarray) -> np.ndarray
             normal, _ = _plane_fit_reference(window.astype(np.float64))
             normals[i, j] = -normal if normal @ points[i, j] > 0 else normal
     return normals
+
+
+def _inverse_depth_reference(points: np.ndarray, projection: PinholeProjection, size: int) -> np.ndarray:
+    """Pinhole-path normals by explicit least squares of 1/z = A u + B v + C over full, valid windows."""
+    height, width = points.shape[:2]
+    half = size // 2
+    normals = np.full((height, width, 3), np.nan)
+    rows, cols = np.mgrid[0:height, 0:width].astype(np.float64)
+    u = (cols - projection.cx) / projection.fx
+    v = (rows - projection.cy) / projection.fy
+    for i in range(half, height - half):
+        for j in range(half, width - half):
+            window = (slice(i - half, i + half + 1), slice(j - half, j + half + 1))
+            depth = points[window][..., 2].astype(np.float64).ravel()
+            if not np.isfinite(depth).all():
+                continue
+            design = np.column_stack([u[window].ravel(), v[window].ravel(), np.ones(depth.size)])
+            coefficients = np.linalg.lstsq(design, 1.0 / depth, rcond=None)[0]
+            normal = -coefficients / np.linalg.norm(coefficients)
+            normals[i, j] = -normal if normal @ points[i, j] > 0 else normal
+    return normals

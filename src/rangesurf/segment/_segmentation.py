@@ -43,10 +43,14 @@ class Segmentation:
         return len(self.planes) - 1
 
     @classmethod
-    def from_moments(cls, labels: np.ndarray, moments: np.ndarray, unlabelled: int) -> Segmentation:
+    def from_moments(
+        cls, labels: np.ndarray, moments: np.ndarray, unlabelled: int, fit_moments: np.ndarray | None = None
+    ) -> Segmentation:
         """Build from per-segment point moments ``(K + 1, 10)`` (n, sums of x, y, z, and of their products).
 
         Segments are renumbered by size, largest first; empty ones are dropped.
+        Planes and residuals come from ``fit_moments`` when given (the
+        moments of the points to fit, e.g. a segment's interior).
         """
         counts = moments[1:, 0]
         keep = np.flatnonzero(counts > 0)
@@ -55,6 +59,6 @@ class Segmentation:
         renumber[keep + 1] = np.arange(1, len(keep) + 1, dtype=np.int32)
         planes = np.full((len(keep) + 1, 4), np.nan)
         residuals = np.full(len(keep) + 1, np.nan)
-        planes[1:], residuals[1:] = planes_from_moments(moments[keep + 1])
+        planes[1:], residuals[1:] = planes_from_moments((moments if fit_moments is None else fit_moments)[keep + 1])
         sizes = np.concatenate([[unlabelled], counts[keep]]).astype(np.int64)
         return cls(labels=renumber[labels], planes=planes, residuals=residuals, sizes=sizes)

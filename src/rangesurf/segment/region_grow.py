@@ -54,6 +54,10 @@ _REFIT_GROWTH = 1.25
 _FIRST_FIT = 16
 # In-plane spread (noise sigmas, both directions) a region needs before its own fit sets its normal.
 _SUPPORT_SIGMAS = 4.0
+# Final plane fits use the points this far (pixels) inside a segment's outline, if there are enough.
+_INTERIOR_MARGIN = 2
+_MIN_INTERIOR = 30
+_MIN_INTERIOR_FRACTION = 0.5
 # Neighbour offsets (row, column) for growing and for region adjacency.
 _FOUR = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
 
@@ -167,7 +171,7 @@ def grow_regions(
     if merge:
         labels, moments = _merge_coplanar(labels, moments, sigma, float(distance_sigmas), math.cos(math.radians(max_angle)))
     unlabelled = int(np.count_nonzero(valid & (labels == 0)))
-    return Segmentation.from_moments(labels, moments, unlabelled)
+    return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, labels, moments))
 
 
 # --------------------------------------------------------------------------
@@ -254,6 +258,24 @@ def _merge_coplanar(
             noise[ra] = union_noise
     roots = np.array([root(index) for index in range(len(moments))])
     return roots[labels].astype(np.int32), merged
+
+
+def _interior_moments(points: np.ndarray, labels: np.ndarray, moments: np.ndarray) -> np.ndarray:
+    """Moments of each segment's interior (2 pixels in from its outline; the image border does not count).
+
+    The outline is where a segment meets another at a crease, and smoothing
+    rounds creases: fitting the plane to the interior keeps that bevel out of
+    it. Segments with too small an interior keep all their points.
+    """
+    as_float = labels.astype(np.float32)  # exact for any realistic segment count (< 2**24)
+    kernel = np.ones((2 * _INTERIOR_MARGIN + 1,) * 2, np.uint8)
+    low = cv2.erode(as_float, kernel, borderType=cv2.BORDER_REPLICATE)
+    high = cv2.dilate(as_float, kernel, borderType=cv2.BORDER_REPLICATE)
+    interior = np.where((low == high) & (labels > 0), labels, 0).astype(np.int32)
+    fit = _label_moments(points, interior, len(moments))
+    too_small = fit[:, 0] < np.maximum(_MIN_INTERIOR, _MIN_INTERIOR_FRACTION * moments[:, 0])
+    fit[too_small] = moments[too_small]
+    return fit
 
 
 def _neighbour_pairs(labels: np.ndarray) -> np.ndarray:

@@ -1,0 +1,161 @@
+"""Region growing against analytic scenes and simulator ground truth."""
+
+import numpy as np
+import pytest
+
+from rangesurf import simulate
+from rangesurf.denoise import denoise_range
+from rangesurf.frame import get_sensor
+from rangesurf.normals import estimate_normals
+from rangesurf.segment import Segmentation, grow_regions
+from rangesurf.segment.evaluate import evaluate_segmentation, truth_labels
+
+SR3000 = get_sensor("sr3000")
+RAYS = SR3000.projection.directions(*SR3000.shape)
+
+
+def on_plane(normal, d, mask=None):
+    normal = np.asarray(normal, float) / np.linalg.norm(normal)
+    depth = -d / (RAYS @ normal)
+    points = RAYS * depth[..., None]
+    if mask is not None:
+        points[~mask] = np.nan
+    return points
+
+
+def segment(points, sigma=0.002, **options):
+    points = points.astype(np.float32)
+    normals = estimate_normals(points, projection=SR3000.projection, range_sigma=sigma)
+    return grow_regions(points, normals, range_sigma=sigma, **options)
+
+
+def test_box_on_a_floor_gives_each_face():
+    wall = on_plane((0, 0, -1), 3.0)
+    front = on_plane((0, 0, -1), 2.0)
+    floor = on_plane((0, -1, -0.3), 1.0)
+    points = np.where((np.linalg.norm(floor, axis=2) < np.linalg.norm(wall, axis=2))[..., None] & (floor[..., 2] > 0)[..., None], floor, wall)
+    box = np.zeros(SR3000.shape, bool)
+    box[30:80, 40:110] = True
+    points[box] = front[box]
+    truth = np.where(box, 3, np.where(points[..., 2] == wall[..., 2], 1, 2)).astype(np.int32)
+    result = segment(points)
+    scores = evaluate_segmentation(truth, result.labels)
+    assert scores.correct == 3, scores
+    box_label = np.bincount(result.labels[box]).argmax()
+    assert np.allclose(result.planes[box_label], [0, 0, -1, 2.0], atol=1e-3)
+
+
+def test_planes_face_the_sensor_and_are_sorted_by_size():
+    result = segment(on_plane((0.2, 0.1, -1), 2.5))
+    assert result.n_segments == 1
+    assert result.planes[1, 3] > 0 and np.isclose(np.linalg.norm(result.planes[1, :3]), 1)
+    assert np.isnan(result.planes[0]).all()
+    assert result.sizes[1] == SR3000.shape[0] * SR3000.shape[1]
+
+
+def test_coplanar_patches_apart_stay_apart_and_a_crack_is_merged():
+    apart = np.ones(SR3000.shape, bool)
+    apart[:, 80:90] = False  # a 10-pixel gap with no returns
+    result = segment(on_plane((0, 0, -1), 2.0, apart))
+    assert result.n_segments == 2
+    assert np.allclose(result.planes[1], result.planes[2], atol=1e-4)
+    crack = np.ones(SR3000.shape, bool)
+    crack[:, 85] = False  # a one-pixel crack: still one wall
+    assert segment(on_plane((0, 0, -1), 2.0, crack)).n_segments == 1
+
+
+def test_residual_is_the_noise_level():
+    """UL2: the RMS residual of a noisy plane is its noise along the normal."""
+    rng = np.random.default_rng(1)
+    points = on_plane((0, 0, -1), 2.0)
+    points[..., 2] += rng.normal(0, 0.01, SR3000.shape)
+    result = segment(points, sigma=0.01)
+    assert result.n_segments == 1
+    assert result.residuals[1] == pytest.approx(0.01, rel=0.1)
+
+
+@pytest.mark.parametrize("sensor, frames", [("sr3000", 3), ("kinect", 1)])
+def test_simulated_arena_after_denoising(sensor, frames):
+    """Hoover score at T = 0.8 on denoised frames: nearly every plane found, normals within a degree."""
+    frame_list, truths = simulate.simulate_sequence("arena", sensor, frames, seed=21)
+    correct = total = 0
+    angles = []
+    for frame, truth in zip(frame_list, truths):
+        smooth = denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)
+        points = (frame.rays * smooth[..., None]).astype(np.float32)
+        sigma = frame.sensor.range_sigma(smooth, frame.intensity)
+        normals = estimate_normals(points, projection=frame.sensor.projection, range_sigma=sigma)
+        result = grow_regions(points, normals, range_sigma=sigma)
+        min_size = round(100 * smooth.size / (176 * 144))
+        scores = evaluate_segmentation(
+            truth_labels(truth, frame.rays), result.labels, truth_planes=truth.planes,
+            machine_planes=result.planes, min_region_size=min_size,
+        )
+        correct += scores.correct
+        total += scores.n_truth
+        angles += scores.normal_errors_deg
+    assert correct >= 0.9 * total
+    assert np.mean(angles) < 1.0
+
+
+def test_min_size_and_labels_are_consistent():
+    rng = np.random.default_rng(2)
+    points = on_plane((0, 0, -1), 2.0)
+    points[..., 2] += rng.normal(0, 0.002, SR3000.shape)
+    result = segment(points, min_size=500)
+    assert (result.sizes[1:] >= 500).all()
+    for label in range(1, result.n_segments + 1):
+        assert (result.labels == label).sum() == result.sizes[label]
+    assert (result.labels == 0).sum() >= result.sizes[0]
+
+
+def test_empty_and_degenerate_frames_give_no_segments():
+    nothing = np.full(SR3000.shape + (3,), np.nan, np.float32)
+    for points in (nothing, np.where(np.arange(3) == 3, 0, nothing)):
+        result = grow_regions(points, points, range_sigma=0.01)
+        assert result.n_segments == 0 and (result.labels == 0).all()
+    single = nothing.copy()
+    single[10, 10] = (0, 0, 2)
+    normals = nothing.copy()
+    normals[10, 10] = (0, 0, -1)
+    assert grow_regions(single, normals, range_sigma=0.01).n_segments == 0
+    # Valid points without normals cannot seed.
+    plane = on_plane((0, 0, -1), 2.0).astype(np.float32)
+    assert grow_regions(plane, nothing, range_sigma=0.01).n_segments == 0
+
+
+def test_pure_noise_gives_no_large_planes():
+    rng = np.random.default_rng(5)
+    depth = rng.uniform(1.0, 5.0, SR3000.shape)
+    points = (RAYS * depth[..., None]).astype(np.float32)
+    result = segment(points, sigma=0.01)
+    assert result.sizes[1:].sum() < 0.05 * depth.size
+
+
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"range_sigma": 0.0}, "range_sigma"),
+        ({"range_sigma": 0.01, "max_angle": 95}, "max_angle"),
+        ({"range_sigma": 0.01, "min_size": 0}, "min_size"),
+        ({"range_sigma": 0.01, "distance_sigmas": -1}, "distance_sigmas"),
+    ],
+)
+def test_bad_options_are_refused(options, message):
+    plane = on_plane((0, 0, -1), 2.0).astype(np.float32)
+    with pytest.raises(ValueError, match=message):
+        grow_regions(plane, plane, **options)
+
+
+def test_bad_arrays_are_refused():
+    plane = on_plane((0, 0, -1), 2.0).astype(np.float32)
+    with pytest.raises(ValueError, match="same shape"):
+        grow_regions(plane, plane[:-1], range_sigma=0.01)
+    with pytest.raises(ValueError, match=r"\(H, W, 3\)"):
+        grow_regions(plane[..., 0], plane, range_sigma=0.01)
+    with pytest.raises(ValueError, match="Inf"):
+        grow_regions(np.where(plane > 0, np.inf, plane), plane, range_sigma=0.01)
+
+
+def test_result_type():
+    assert isinstance(segment(on_plane((0, 0, -1), 2.0)), Segmentation)
