@@ -11,7 +11,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["smallest_eigen", "planes_from_moments"]
+__all__ = ["smallest_eigen", "planes_from_moments", "plane_rms"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -112,3 +112,20 @@ def planes_from_moments(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     planes[usable] = np.column_stack([normal, d])
     rms[usable] = np.sqrt(np.maximum(values[:, 0], 0.0))
     return planes, rms
+
+
+def plane_rms(moments: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """Root-mean-square distance of each point set (moments ``(K, 10)``) to a given plane ``(K, 4)``.
+
+    ``E[(n . p + d)^2] = n^T E[p p^T] n + 2 d n . E[p] + d^2``, from the moments alone.
+    """
+    moments = np.atleast_2d(np.asarray(moments, dtype=np.float64))
+    planes = np.atleast_2d(np.asarray(planes, dtype=np.float64))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        scaled = moments / moments[:, :1]
+    n = planes[:, :3]
+    xx, xy, xz, yy, yz, zz = (scaled[:, k] for k in range(4, 10))
+    quadratic = (n[:, 0] ** 2 * xx + n[:, 1] ** 2 * yy + n[:, 2] ** 2 * zz
+                 + 2 * (n[:, 0] * n[:, 1] * xy + n[:, 0] * n[:, 2] * xz + n[:, 1] * n[:, 2] * yz))
+    mean_square = quadratic + 2 * planes[:, 3] * np.einsum("kj,kj->k", n, scaled[:, 1:4]) + planes[:, 3] ** 2
+    return np.sqrt(np.maximum(mean_square, 0.0))

@@ -195,9 +195,11 @@ def depth_discontinuities(
     Two valid neighbours (4-connected, or two apart across one invalid
     pixel) are on opposite sides of a jump when their ranges differ by more
     than ``depth_jump`` times the nearer range and, given ``range_sigma``, by
-    more than four noise sigmas of their difference. A reading that jumps
-    against three or four of its neighbours is a spike (salt-and-pepper),
-    not an edge: it is ignored, and marks no jump.
+    more than four noise sigmas of their difference -- unless the steps on
+    both sides of the pair are of the same sign and size (within a factor of
+    two): that is a surface seen at a grazing angle, not a jump. A reading
+    that jumps against three or four of its neighbours is a spike
+    (salt-and-pepper), not an edge: it is ignored, and marks no jump.
 
     Parameters
     ----------
@@ -562,9 +564,13 @@ def _spikes_and_jumps(distance, valid, sigma, depth_jump):  # pragma: no cover -
             if not valid[i, j]:
                 continue
             if j + 1 < width and valid[i, j + 1]:
-                across[i, j] = _is_jump(distance, noise, depth_jump, i, j, i, j + 1, 1.0)
+                across[i, j] = _is_jump(distance, noise, depth_jump, i, j, i, j + 1, 1.0) and not _is_ramp(
+                    distance, valid, i, j, 0, 1
+                )
             if i + 1 < height and valid[i + 1, j]:
-                down[i, j] = _is_jump(distance, noise, depth_jump, i, j, i + 1, j, 1.0)
+                down[i, j] = _is_jump(distance, noise, depth_jump, i, j, i + 1, j, 1.0) and not _is_ramp(
+                    distance, valid, i, j, 1, 0
+                )
     spikes = np.zeros((height, width), np.bool_)
     for i in range(height):
         for j in range(width):
@@ -604,6 +610,31 @@ def _is_jump(distance, noise, depth_jump, i, j, qi, qj, step):  # pragma: no cov
     relative = depth_jump * min(a, b)
     gap = (a - b) / step
     return gap * gap > max(relative * relative, noise[i, j] + noise[qi, qj])
+
+
+@numba.njit(**_JIT, inline="always")
+def _is_ramp(distance, valid, i, j, di, dj):  # pragma: no cover - compiled
+    """Whether the step from (i, j) to the next pixel continues the steps on both sides of it.
+
+    A surface seen at a grazing angle (a floor far ahead) changes range by a
+    large step per pixel, but steadily; a depth jump is a step much larger
+    than its neighbours. Both neighbouring steps must agree in sign and lie
+    within a factor of two of this one.
+    """
+    height, width = valid.shape
+    bi, bj = i - di, j - dj
+    ai, aj = i + 2 * di, j + 2 * dj
+    if bi < 0 or bj < 0 or ai >= height or aj >= width:
+        return False
+    if not (valid[bi, bj] and valid[ai, aj]):
+        return False
+    step = distance[i + di, j + dj] - distance[i, j]
+    before = distance[i, j] - distance[bi, bj]
+    after = distance[ai, aj] - distance[i + di, j + dj]
+    for other in (before, after):
+        if other * step <= 0.0 or abs(other) < 0.5 * abs(step) or abs(other) > 2.0 * abs(step):
+            return False
+    return True
 
 
 @numba.njit(**_JIT)

@@ -11,7 +11,7 @@ import numpy as np
 
 from rangesurf.io._common import atomic_path
 
-__all__ = ["colorize_range", "colorize_edges", "image_panel", "write_image"]
+__all__ = ["colorize_range", "colorize_edges", "colorize_labels", "nxd_scatter", "segmentation_figure", "image_panel", "write_image"]
 
 _NO_RETURN_BGR = (64, 64, 64)
 _LABEL_HEIGHT = 22
@@ -58,6 +58,93 @@ def colorize_edges(edges: np.ndarray, *, background: np.ndarray | None = None) -
     image = np.zeros(edges.shape + (3,), np.uint8) if background is None else (background // 3).astype(np.uint8)
     image[edges] = 255
     return image
+
+
+def _label_colours(count: int) -> np.ndarray:
+    """``count + 1`` BGR colours: grey for label 0, then well-separated hues (golden-ratio steps)."""
+    hues = (np.arange(count) * 0.618034 % 1.0 * 180).astype(np.uint8)
+    hsv = np.stack([hues, np.full(count, 200, np.uint8), np.full(count, 255, np.uint8)], axis=1)[None]
+    colours = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0]
+    return np.vstack([[[110, 110, 110]], colours]).astype(np.uint8)
+
+
+def colorize_labels(labels: np.ndarray, *, background: np.ndarray | None = None, opacity: float = 0.65) -> np.ndarray:
+    """Segments in distinct colours, blended over a background image (thesis Figure 3.5, top right).
+
+    Parameters
+    ----------
+    labels : (H, W) int array
+        Segment labels, 0 = none (shows the background, or grey).
+    background : (H, W, 3) uint8, optional
+        BGR image under the segments.
+    opacity : float
+        Weight of the segment colour over the background.
+    """
+    labels = np.asarray(labels)
+    if labels.ndim != 2 or not np.issubdtype(labels.dtype, np.integer):
+        raise ValueError(f"labels must be a 2-D integer array, got shape {labels.shape} and dtype {labels.dtype}")
+    colours = _label_colours(int(labels.max(initial=0)))
+    image = colours[np.clip(labels, 0, None)]
+    if background is None:
+        return image
+    blended = (opacity * image + (1 - opacity) * background).astype(np.uint8)
+    return np.where((labels > 0)[..., None], blended, background)
+
+
+def nxd_scatter(
+    nxd: np.ndarray, labels: np.ndarray, *, size: tuple[int, int], azimuth: float = 35.0, elevation: float = 25.0
+) -> np.ndarray:
+    """The normal x distance cloud seen obliquely, each point in its segment's colour (thesis Figure 3.5, bottom).
+
+    Parameters
+    ----------
+    nxd : (H, W, 3) float array
+        `rangesurf.segment.nxd_transform` output, NaN where unknown.
+    labels : (H, W) int array
+        Segment of each pixel (0 = none, drawn grey, under the others).
+    size : (height, width)
+        Image size in pixels.
+    azimuth, elevation : float
+        Viewing direction (degrees).
+    """
+    height, width = size
+    image = np.full((height, width, 3), 255, np.uint8)
+    known = np.isfinite(nxd).all(axis=2)
+    if not known.any():
+        return image
+    a, e = np.radians(azimuth), np.radians(elevation)
+    turn = np.array([[np.cos(a), 0.0, -np.sin(a)], [0.0, 1.0, 0.0], [np.sin(a), 0.0, np.cos(a)]])
+    tilt = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(e), -np.sin(e)], [0.0, np.sin(e), np.cos(e)]])
+    view = (nxd[known].astype(np.float64) - np.nanmedian(nxd[known], axis=0)) @ (tilt @ turn).T
+    low, high = np.percentile(view[:, :2], [0.5, 99.5], axis=0)
+    scale = 0.9 * min(width / max(high[0] - low[0], 1e-9), height / max(high[1] - low[1], 1e-9))
+    centre = (low + high) / 2
+    columns = np.round((view[:, 0] - centre[0]) * scale + width / 2).astype(int)
+    rows = np.round((view[:, 1] - centre[1]) * scale + height / 2).astype(int)
+    inside = (rows >= 0) & (rows < height) & (columns >= 0) & (columns < width)
+    point_labels = labels[known]
+    colours = _label_colours(int(labels.max(initial=0)))
+    # Unlabelled points first, so that segments are drawn over them.
+    order = np.argsort(point_labels > 0, kind="stable")
+    order = order[inside[order]]
+    image[rows[order], columns[order]] = colours[np.clip(point_labels[order], 0, None)]
+    return image
+
+
+def segmentation_figure(range_image: np.ndarray, labels: np.ndarray, nxd: np.ndarray, *, title: str = "") -> np.ndarray:
+    """Thesis Figure 3.5 for one frame: grey range, segments over it, and the NxD cloud coloured by segment."""
+    from rangesurf.edges import normalize_range
+
+    grey = normalize_range(range_image).astype(np.uint8)
+    background = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
+    background[~np.isfinite(range_image)] = _NO_RETURN_BGR
+    height, width = grey.shape
+    scale = max(1, -(-320 // width))
+    big = (width * scale, height * scale)
+    tiles = [cv2.resize(image, big, interpolation=cv2.INTER_NEAREST) for image in (background, colorize_labels(labels, background=background))]
+    tiles.append(nxd_scatter(nxd, labels, size=(height * scale, width * scale)))
+    captions = ["normalized range", f"segments ({int(labels.max(initial=0))}){' - ' + title if title else ''}", "N x D space by segment"]
+    return image_panel(tiles, captions, columns=3, scale=1)
 
 
 def image_panel(images: Sequence[np.ndarray], labels: Sequence[str], *, columns: int = 2, scale: int | None = None) -> np.ndarray:

@@ -2,15 +2,30 @@
 
 * `grow_regions` -- region growing with incremental plane fits (Poppinga et
   al. 2008), the main segmenter;
-* `nxd_transform`, `cluster_nxd` -- the thesis's normal x distance space and
-  its clustering into surfaces;
-* `evaluate_segmentation` -- the Hoover et al. 1996 comparison against
-  ground-truth labels (the field's standard score).
+* `nxd_transform`, `segment_nxd` -- the thesis's normal x distance space and
+  segmentation by clustering in it;
+* `evaluate_segmentation`, `truth_labels` -- the Hoover et al. 1996
+  comparison against ground-truth labels (the field's standard score).
 
-Every segmenter returns a `Segmentation` (labels, planes, residuals, sizes).
+Every segmenter returns a `Segmentation` (labels, planes, residuals, sizes);
+`segment_frame` runs denoising, normals and a segmenter on one `RangeFrame`.
 """
 
+from rangesurf.segment._frame import SEGMENTERS, SegmentedFrame, segment_frame
 from rangesurf.segment._segmentation import Segmentation
+from rangesurf.segment.evaluate import SegmentationScores, evaluate_segmentation, truth_labels
+from rangesurf.segment.nxd import nxd_transform, segment_nxd
 from rangesurf.segment.region_grow import grow_regions
 
-__all__ = ["Segmentation", "grow_regions"]
+__all__ = [
+    "SEGMENTERS",
+    "Segmentation",
+    "SegmentedFrame",
+    "SegmentationScores",
+    "evaluate_segmentation",
+    "grow_regions",
+    "nxd_transform",
+    "segment_frame",
+    "segment_nxd",
+    "truth_labels",
+]

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rangesurf._planefit import planes_from_moments
+from rangesurf._planefit import plane_rms, planes_from_moments
 
 __all__ = ["Segmentation"]
 
@@ -49,8 +49,9 @@ class Segmentation:
         """Build from per-segment point moments ``(K + 1, 10)`` (n, sums of x, y, z, and of their products).
 
         Segments are renumbered by size, largest first; empty ones are dropped.
-        Planes and residuals come from ``fit_moments`` when given (the
-        moments of the points to fit, e.g. a segment's interior).
+        Planes come from ``fit_moments`` when given (the moments of the points
+        to fit, e.g. a segment's interior); residuals are always those of all
+        the segment's points.
         """
         counts = moments[1:, 0]
         keep = np.flatnonzero(counts > 0)
@@ -60,5 +61,8 @@ class Segmentation:
         planes = np.full((len(keep) + 1, 4), np.nan)
         residuals = np.full(len(keep) + 1, np.nan)
         planes[1:], residuals[1:] = planes_from_moments((moments if fit_moments is None else fit_moments)[keep + 1])
+        if fit_moments is not None:
+            # The residual is every point's, about the plane fitted to some of them.
+            residuals[1:] = plane_rms(moments[keep + 1], planes[1:])
         sizes = np.concatenate([[unlabelled], counts[keep]]).astype(np.int64)
         return cls(labels=renumber[labels], planes=planes, residuals=residuals, sizes=sizes)

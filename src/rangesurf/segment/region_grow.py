@@ -58,6 +58,8 @@ _SUPPORT_SIGMAS = 4.0
 _INTERIOR_MARGIN = 2
 _MIN_INTERIOR = 30
 _MIN_INTERIOR_FRACTION = 0.5
+# Points beyond this many residual RMS from the first fit are left out of the final one.
+_TRIM_RMS = 2.0
 # Neighbour offsets (row, column) for growing and for region adjacency.
 _FOUR = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
 
@@ -275,6 +277,15 @@ def _interior_moments(points: np.ndarray, labels: np.ndarray, moments: np.ndarra
     fit = _label_moments(points, interior, len(moments))
     too_small = fit[:, 0] < np.maximum(_MIN_INTERIOR, _MIN_INTERIOR_FRACTION * moments[:, 0])
     fit[too_small] = moments[too_small]
+    interior[np.isin(interior, np.flatnonzero(too_small))] = 0
+    interior = np.where(interior > 0, interior, np.where(np.isin(labels, np.flatnonzero(too_small)), labels, 0))
+    # One trimming pass: points more than _TRIM_RMS residual RMS off the plane (a rounded crease,
+    # a stray pixel) leave the fit.
+    planes, rms = planes_from_moments(fit)
+    trimmed = _trim_labels(points, interior.astype(np.int32), planes, _TRIM_RMS * np.nan_to_num(rms, nan=np.inf))
+    refit = _label_moments(points, trimmed, len(moments))
+    keep = refit[:, 0] >= np.maximum(3, 0.5 * fit[:, 0])
+    fit[keep] = refit[keep]
     return fit
 
 
@@ -470,6 +481,22 @@ def _refine_boundaries(points, distance, sigma, labels, planes, depth_jump):  # 
                         best_distance = gap
             if best != own and best_distance <= 3.0 * sigma[i, j]:
                 labels[i, j] = best
+
+
+@numba.njit(**_JIT)
+def _trim_labels(points, labels, planes, limits):  # pragma: no cover - compiled
+    """Labels with the pixels farther than ``limits[label]`` from their segment's plane set to 0."""
+    height, width = labels.shape
+    kept = labels.copy()
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label <= 0:
+                continue
+            offset = planes[label, 0] * points[i, j, 0] + planes[label, 1] * points[i, j, 1] + planes[label, 2] * points[i, j, 2] + planes[label, 3]
+            if not (abs(offset) <= limits[label]):
+                kept[i, j] = 0
+    return kept
 
 
 @numba.njit(**_JIT)
