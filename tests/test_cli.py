@@ -105,3 +105,29 @@ def test_readme_error_example_is_what_a_truncated_line_gives(tmp_path, capsys):
     scan.write_text("360 x 225\n" + "1 2 3\n" * 5 + "10.1 0\n")
     assert main(["info", str(scan)]) == 2
     assert "scan000.3d, line 7: expected 3 numbers like the first point line (line 2), got 2: '10.1 0'" in capsys.readouterr().err
+
+
+def test_segment_writes_labels_that_match_truth_and_a_figure(tmp_path, capsys):
+    import cv2
+
+    from rangesurf.segment import evaluate_segmentation, truth_labels
+
+    main(["simulate", "--frames", "1", "--out", str(tmp_path / "sim"), "--quiet"])
+    truth = rs.simulate.load_ground_truth(tmp_path / "sim" / "truth" / "truth000000.npz")
+    frame = rs.load(tmp_path / "sim" / "frame000000.npz")[0]
+    assert main(["segment", str(tmp_path / "sim" / "frame000000.npz"), "--out", str(tmp_path / "seg"), "--quiet"]) == 0
+    with np.load(tmp_path / "seg" / "frame000000_segments.npz") as saved:
+        labels, planes = saved["labels"], saved["planes"]
+    scores = evaluate_segmentation(truth_labels(truth, frame.rays), labels, truth_planes=truth.planes,
+                                   machine_planes=planes, min_region_size=100)
+    assert scores.correct >= scores.n_truth - 1 and scores.n_truth >= 4
+    figure = cv2.imread(str(tmp_path / "seg" / "frame000000_segments.png"))
+    assert figure is not None and figure.shape[1] == 3 * 176 * 2
+    assert len(np.unique(figure.reshape(-1, 3), axis=0)) > 8  # segments in colour, not a blank page
+    out = capsys.readouterr().out
+    assert "planar segments cover" in out and "rms =" in out
+
+
+def test_segment_names_a_missing_file(tmp_path, capsys):
+    assert main(["segment", str(tmp_path / "nothing.3d"), "--out", str(tmp_path / "seg")]) == 2
+    assert "nothing.3d" in capsys.readouterr().err

@@ -13,7 +13,7 @@ Every segmenter returns a `Segmentation` (labels, planes, residuals, sizes);
 
 from rangesurf.segment._frame import SEGMENTERS, SegmentedFrame, segment_frame
 from rangesurf.segment._segmentation import Segmentation
-from rangesurf.segment.evaluate import SegmentationScores, evaluate_segmentation, truth_labels
+from rangesurf.segment.evaluate import SegmentationScores, evaluate_segmentation, truth_labels, truth_segmentation
 from rangesurf.segment.nxd import nxd_transform, segment_nxd
 from rangesurf.segment.region_grow import grow_regions
 
@@ -28,4 +28,5 @@ __all__ = [
     "segment_frame",
     "segment_nxd",
     "truth_labels",
+    "truth_segmentation",
 ]

@@ -24,11 +24,13 @@ from dataclasses import asdict, dataclass
 from fractions import Fraction
 from typing import Any
 
+import cv2
 import numpy as np
 
+from rangesurf.segment._segmentation import Segmentation
 from rangesurf.simulate import GroundTruth
 
-__all__ = ["SegmentationScores", "evaluate_segmentation", "truth_labels"]
+__all__ = ["SegmentationScores", "evaluate_segmentation", "truth_labels", "truth_segmentation"]
 
 # The tolerance is compared as a fraction num / den in integer arithmetic, so
 # that an overlap of exactly T * M pixels counts (0.7 * 10 is 7.000000000000001
@@ -559,3 +561,60 @@ def truth_labels(
         labels[~planar[np.clip(labels, 0, len(planar) - 1)] | (labels >= len(planar))] = 0
     return labels
 
+
+
+def truth_segmentation(
+    truth: GroundTruth, rays: np.ndarray, *, max_incidence: float = 80.0, planar_only: bool = True
+) -> Segmentation:
+    """The ground truth of a simulated frame as a `Segmentation` to score against.
+
+    As `truth_labels`, and each surface split into its 4-connected parts:
+    SegComp's ground-truth regions are connected, and the simulator gives
+    one id to every piece of a surface (a wall interrupted by a door is two
+    regions to find, not one). Each part keeps its surface's plane.
+
+    Parameters
+    ----------
+    truth : GroundTruth
+        From `rangesurf.simulate.simulate_frame`.
+    rays : (H, W, 3) float array
+        Unit viewing directions of the frame (``frame.rays``).
+    max_incidence, planar_only
+        As for `truth_labels`.
+
+    Returns
+    -------
+    Segmentation
+        ``labels`` the parts (largest first), ``planes`` their surfaces' true
+        planes (sensor frame), ``residuals`` 0, ``sizes`` pixel counts.
+
+    Examples
+    --------
+    >>> from rangesurf import simulate
+    >>> frames, truths = simulate.simulate_sequence("corridor", "sr3000", n_frames=1)
+    >>> parts = truth_segmentation(truths[0], frames[0].rays)
+    >>> bool(parts.n_segments > len(np.unique(truth_labels(truths[0], frames[0].rays))) - 1)
+    True
+    """
+    labels = truth_labels(truth, rays, max_incidence=max_incidence, planar_only=planar_only)
+    parts = np.zeros(labels.shape, np.int32)
+    surface_of_part = [0]
+    for surface in np.unique(labels[labels > 0]):
+        count, components = cv2.connectedComponents((labels == surface).astype(np.uint8), connectivity=4)
+        inside = components > 0
+        parts[inside] = components[inside] + len(surface_of_part) - 1
+        surface_of_part += [int(surface)] * (count - 1)
+    surface_of_part = np.asarray(surface_of_part)
+    sizes = np.bincount(parts.ravel(), minlength=len(surface_of_part))
+    order = np.argsort(-sizes[1:], kind="stable") + 1
+    renumber = np.zeros(len(surface_of_part), np.int32)
+    renumber[order] = np.arange(1, len(order) + 1, dtype=np.int32)
+    planes = np.full((len(order) + 1, 4), np.nan)
+    planes[1:] = np.asarray(truth.planes)[surface_of_part[order]]
+    residuals = np.zeros(len(order) + 1)
+    residuals[0] = np.nan
+    unlabelled = int(np.count_nonzero(np.isfinite(truth.range) & (labels == 0)))
+    return Segmentation(
+        labels=renumber[parts], planes=planes, residuals=residuals,
+        sizes=np.concatenate([[unlabelled], sizes[order]]).astype(np.int64),
+    )

@@ -50,6 +50,9 @@ __all__ = ["grow_regions"]
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 # Refit the plane when the region has grown by this factor since the last fit.
 _REFIT_GROWTH = 1.25
+# Default smallest segment: this fraction of the image, and never fewer pixels than the floor.
+_MIN_SIZE_FRACTION = 0.002
+_MIN_SIZE_FLOOR = 20
 # First refit (points): a plane through fewer noisy points is worse than the seed's normal.
 _FIRST_FIT = 16
 # In-plane spread (noise sigmas, both directions) a region needs before its own fit sets its normal.
@@ -60,6 +63,13 @@ _MIN_INTERIOR = 30
 _MIN_INTERIOR_FRACTION = 0.5
 # Points beyond this many residual RMS from the first fit are left out of the final one.
 _TRIM_RMS = 2.0
+# Largest increase of the residual variance that merging two neighbouring segments may cause.
+_MERGE_VARIANCE_GAIN = 1.5
+# Rings of outline pixels the absorption step may add to a segment.
+_ABSORB_SWEEPS = 4
+# A segment thinner than this (pixels) whose plane lies between two neighbours' is a rounded crease.
+_BEVEL_WIDTH = 6.0
+_BEVEL_SLACK = 5.0
 # Neighbour offsets (row, column) for growing and for region adjacency.
 _FOUR = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
 
@@ -72,7 +82,7 @@ def grow_regions(
     distance_sigmas: float = 3.0,
     max_angle: float = 20.0,
     depth_jump: float = 0.05,
-    min_size: int = 50,
+    min_size: int | None = None,
     merge: bool = True,
 ) -> Segmentation:
     """Split an organized frame into planar segments by region growing.
@@ -97,8 +107,10 @@ def grow_regions(
     depth_jump : float
         Neighbours whose ranges differ by more than this fraction of the
         range are never joined (as in `rangesurf.normals.depth_discontinuities`).
-    min_size : int
-        Smallest segment kept (pixels).
+    min_size : int, optional
+        Smallest segment kept (pixels). Default: 0.2 % of the image (50
+        pixels of an SR-3000 frame, 614 of a 640x480 one), so that the same
+        scene gives the same segments at any resolution.
     merge : bool
         Merge neighbouring segments that lie on one plane.
 
@@ -142,6 +154,8 @@ def grow_regions(
             raise ValueError(f"{name} must be > 0, got {value!r}")
     if not (isinstance(max_angle, (int, float)) and 0 < max_angle < 90):
         raise ValueError(f"max_angle must be in (0, 90) degrees, got {max_angle!r}")
+    if min_size is None:
+        min_size = max(_MIN_SIZE_FLOOR, round(_MIN_SIZE_FRACTION * points.shape[0] * points.shape[1]))
     if isinstance(min_size, bool) or not isinstance(min_size, (int, np.integer)) or min_size < 1:
         raise ValueError(f"min_size must be an integer >= 1, got {min_size!r}")
 
@@ -168,12 +182,24 @@ def grow_regions(
     _refine_boundaries(points, distance, sigma, labels, planes, float(depth_jump))
     moments = _label_moments(points, labels, len(moments))
     planes, _ = planes_from_moments(moments)
-    _absorb_kernel(points, normals, distance, sigma, valid, labels, moments, planes,
-                   float(distance_sigmas), math.cos(math.radians(min(2 * max_angle, 80.0))), float(depth_jump))
+    # Planes are fitted to what growing found (the core), not to the outline pixels absorbed below.
+    core = labels.copy()
+    _absorb_kernel(points, distance, sigma, valid, labels, planes, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
+    moments = _label_moments(points, labels, len(moments))
     if merge:
-        labels, moments = _merge_coplanar(labels, moments, sigma, float(distance_sigmas), math.cos(math.radians(max_angle)))
+        roots, moments = _merge_coplanar(labels, moments, math.cos(math.radians(max_angle)))
+        labels, core = roots[labels], roots[core]
+    bevels = _bevels(labels, moments)
+    if bevels.size:
+        labels[np.isin(labels, bevels)] = 0
+        core[np.isin(core, bevels)] = 0
+        moments[bevels] = 0
+        planes, _ = planes_from_moments(moments)
+        _absorb_kernel(points, distance, sigma, valid, labels, planes, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
+        moments = _label_moments(points, labels, len(moments))
     unlabelled = int(np.count_nonzero(valid & (labels == 0)))
-    return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, labels, moments))
+    core_moments = _label_moments(points, core, len(moments))
+    return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, core, core_moments))
 
 
 # --------------------------------------------------------------------------
@@ -222,16 +248,21 @@ def _seed_order(normals: np.ndarray, growable: np.ndarray, min_coherence: float)
     return order[: int(np.count_nonzero(seeds))].astype(np.int64)
 
 
-def _merge_coplanar(
-    labels: np.ndarray, moments: np.ndarray, sigma: np.ndarray, distance_sigmas: float, cos_max_angle: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Merge neighbouring segments whose union fits one plane within the noise (union-find, best pairs first)."""
+def _merge_coplanar(labels: np.ndarray, moments: np.ndarray, cos_max_angle: float) -> tuple[np.ndarray, np.ndarray]:
+    """Merge neighbouring segments that one plane fits as well as their own two (union-find, best pairs first).
+
+    Returns the label each label merges into, and the merged moments.
+
+    The test is on the measured residuals, not the sensor model: merging may
+    raise the residual variance by at most ``_MERGE_VARIANCE_GAIN`` over the
+    two segments' pooled variance. A wall split by a crack passes; a door
+    panel set back from its wall, parallel but a few noise sigmas behind,
+    does not.
+    """
     pairs = _neighbour_pairs(labels)
-    if len(pairs) == 0:
-        return labels, moments
-    noise = np.sqrt(np.bincount(labels.ravel(), weights=np.nan_to_num(sigma).ravel() ** 2, minlength=len(moments)))
-    noise /= np.sqrt(np.maximum(moments[:, 0], 1))
     parent = np.arange(len(moments))
+    if len(pairs) == 0:
+        return parent.astype(np.int32), moments
 
     def root(index: int) -> int:
         while parent[index] != index:
@@ -240,26 +271,74 @@ def _merge_coplanar(
         return index
 
     merged = moments.copy()
-    planes, _ = planes_from_moments(moments)
+    planes, rms = planes_from_moments(moments)
+    variance = np.nan_to_num(rms) ** 2
     cosine = np.abs(np.einsum("kj,kj->k", planes[pairs[:, 0], :3], planes[pairs[:, 1], :3]))
-    candidates = sorted(zip(-cosine, pairs[:, 0].tolist(), pairs[:, 1].tolist()))
-    for negative_cosine, a, b in sorted(candidates):
+    for negative_cosine, a, b in sorted(zip(-cosine, pairs[:, 0].tolist(), pairs[:, 1].tolist())):
         if -negative_cosine < cos_max_angle:
             break
         ra, rb = root(a), root(b)
         if ra == rb:
             continue
         union = merged[ra] + merged[rb]
-        rms = float(planes_from_moments(union)[1][0])
-        # The union's residual must stay within the noise of its points (RMS of the members' sigmas).
-        union_noise = math.sqrt((noise[ra] ** 2 * merged[ra, 0] + noise[rb] ** 2 * merged[rb, 0]) / union[0])
-        if rms <= distance_sigmas / 2 * union_noise:
+        union_variance = float(planes_from_moments(union)[1][0]) ** 2
+        pooled = (variance[ra] * merged[ra, 0] + variance[rb] * merged[rb, 0]) / union[0]
+        if union_variance <= _MERGE_VARIANCE_GAIN * pooled:
             parent[rb] = ra
             merged[ra] = union
             merged[rb] = 0
-            noise[ra] = union_noise
-    roots = np.array([root(index) for index in range(len(moments))])
-    return roots[labels].astype(np.int32), merged
+            variance[ra] = union_variance
+    roots = np.array([root(index) for index in range(len(moments))], dtype=np.int32)
+    return roots, merged
+
+
+def _bevels(labels: np.ndarray, moments: np.ndarray) -> np.ndarray:
+    """Labels of slivers that are the rounded crease between two other segments.
+
+    Smoothing rounds a crease into a narrow band whose normals turn from one
+    face's to the other's; growing can make that band a segment of its own.
+    Such a segment is thin (under ``_BEVEL_WIDTH`` pixels across, from the
+    second moments of its pixel coordinates) and its plane lies between two
+    of its neighbours': the angles from each neighbour to it add up to the
+    angle between the neighbours (within ``_BEVEL_SLACK`` degrees), and
+    neither is small. A thin face that is not between two others (a box side
+    seen edge-on, a strip cut off by the image border) stays.
+    """
+    height, width = labels.shape
+    rows, cols = np.mgrid[0:height, 0:width]
+    flat = labels.ravel()
+    count = np.bincount(flat, minlength=len(moments)).astype(float)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        mean_r = np.bincount(flat, rows.ravel(), len(moments)) / count
+        mean_c = np.bincount(flat, cols.ravel(), len(moments)) / count
+        rr = np.bincount(flat, rows.ravel() ** 2.0, len(moments)) / count - mean_r**2
+        cc = np.bincount(flat, cols.ravel() ** 2.0, len(moments)) / count - mean_c**2
+        rc = np.bincount(flat, (rows * cols).ravel().astype(float), len(moments)) / count - mean_r * mean_c
+    # Smaller eigenvalue of the 2x2 pixel covariance; a band of width w has variance w^2 / 12 across.
+    minor = (rr + cc) / 2 - np.sqrt(((rr - cc) / 2) ** 2 + rc**2)
+    thin = np.flatnonzero((count > 0) & (np.sqrt(12 * np.maximum(minor, 0)) < _BEVEL_WIDTH))
+    thin = thin[thin > 0]
+    if thin.size == 0:
+        return thin
+    pairs = _neighbour_pairs(labels)
+    planes, _ = planes_from_moments(moments)
+    normals = planes[:, :3]
+
+    def angle(a: int, b: int) -> float:
+        return math.degrees(math.acos(min(1.0, abs(float(normals[a] @ normals[b])))))
+
+    bevels = []
+    for sliver in thin:
+        around = np.concatenate([pairs[pairs[:, 0] == sliver, 1], pairs[pairs[:, 1] == sliver, 0]])
+        around = [int(a) for a in around if np.isfinite(normals[a]).all()]
+        between = any(
+            angle(a, sliver) > _BEVEL_SLACK and angle(sliver, b) > _BEVEL_SLACK
+            and angle(a, sliver) + angle(sliver, b) <= angle(a, b) + _BEVEL_SLACK
+            for k, a in enumerate(around) for b in around[k + 1 :]
+        )
+        if between:
+            bevels.append(sliver)
+    return np.asarray(bevels, dtype=np.int64)
 
 
 def _interior_moments(points: np.ndarray, labels: np.ndarray, moments: np.ndarray) -> np.ndarray:
@@ -513,38 +592,45 @@ def _label_moments(points, labels, n_labels):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _absorb_kernel(points, normals, distance, sigma, valid, labels, moments, planes, distance_sigmas, cos_angle, depth_jump):  # pragma: no cover - compiled
-    """Grow every region (breadth-first, all at once) into free pixels that fit its final plane."""
+def _absorb_kernel(points, distance, sigma, valid, labels, planes, distance_sigmas, depth_jump, sweeps):  # pragma: no cover - compiled
+    """Give free pixels to the neighbouring segment whose plane is nearest, ring by ring (in place).
+
+    Outline pixels often have spoiled normals (their window straddled the
+    crease or the jump), so growing left them out; by distance alone, each
+    joins the adjacent segment whose plane it is nearest to, if within
+    ``distance_sigmas`` noise sigmas and not across a depth jump. Each sweep
+    decides on the labels of the previous one, so the order of the scan does
+    not matter; ``sweeps`` rings are added at most.
+    """
     height, width = labels.shape
-    queue_i = np.empty(height * width, np.int32)
-    queue_j = np.empty(height * width, np.int32)
-    tail = 0
-    for i in range(height):
-        for j in range(width):
-            if labels[i, j] > 0:
-                queue_i[tail] = i
-                queue_j[tail] = j
-                tail += 1
-    head = 0
-    while head < tail:
-        ci = queue_i[head]
-        cj = queue_j[head]
-        head += 1
-        region = labels[ci, cj]
-        plane = planes[region]
-        for direction in range(4):
-            qi = ci + _FOUR[direction, 0]
-            qj = cj + _FOUR[direction, 1]
-            if qi < 0 or qj < 0 or qi >= height or qj >= width:
-                continue
-            if labels[qi, qj] != 0 or not valid[qi, qj]:
-                continue
-            # A missing normal (outline pixel) does not veto; a contradicting one does.
-            check = cos_angle if normals[qi, qj, 0] == normals[qi, qj, 0] else -2.0
-            if not _joins(points, normals, distance, sigma, plane, qi, qj, ci, cj, distance_sigmas, check, depth_jump):
-                continue
-            labels[qi, qj] = region
-            _add_moments(moments, region, points[qi, qj, 0], points[qi, qj, 1], points[qi, qj, 2])
-            queue_i[tail] = qi
-            queue_j[tail] = qj
-            tail += 1
+    for _ in range(sweeps):
+        before = labels.copy()
+        changed = 0
+        for i in range(height):
+            for j in range(width):
+                if before[i, j] != 0 or not valid[i, j]:
+                    continue
+                x = points[i, j, 0]
+                y = points[i, j, 1]
+                z = points[i, j, 2]
+                best = 0
+                best_gap = distance_sigmas * sigma[i, j]
+                for direction in range(4):
+                    qi = i + _FOUR[direction, 0]
+                    qj = j + _FOUR[direction, 1]
+                    if qi < 0 or qj < 0 or qi >= height or qj >= width:
+                        continue
+                    other = before[qi, qj]
+                    if other <= 0:
+                        continue
+                    if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
+                        continue
+                    gap = abs(planes[other, 0] * x + planes[other, 1] * y + planes[other, 2] * z + planes[other, 3])
+                    if gap <= best_gap:
+                        best = other
+                        best_gap = gap
+                if best > 0:
+                    labels[i, j] = best
+                    changed += 1
+        if changed == 0:
+            break
