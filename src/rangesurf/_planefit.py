@@ -11,7 +11,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["smallest_eigen", "planes_from_moments", "plane_rms"]
+__all__ = ["smallest_eigen", "plane_eigen", "planes_from_moments", "plane_rms"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -20,13 +20,24 @@ _JIT = dict(cache=True, nogil=True, error_model="numpy")
 def smallest_eigen(sums, normal):  # pragma: no cover - compiled
     """Plane fit of window sums: unit normal of least variance into ``normal``; returns that variance.
 
+    Returns -1 when the fit is undefined (fewer than 3 points, or no plane).
+    """
+    return plane_eigen(sums, normal)[0]
+
+
+@numba.njit(**_JIT)
+def plane_eigen(sums, normal):  # pragma: no cover - compiled
+    """Plane fit of moments: normal into ``normal``; returns the smallest and middle covariance eigenvalues.
+
     Closed-form eigenvalues of the 3x3 covariance (trigonometric method), the
     eigenvector from the largest cross product of two rows of ``C - lambda I``.
-    Returns -1 when the fit is undefined (fewer than 3 points, or no plane).
+    The middle eigenvalue is the in-plane spread along the narrower
+    direction. Returns (-1, -1) when the fit is undefined (fewer than 3
+    points, or no plane).
     """
     n = sums[0]
     if n < 3.0:
-        return -1.0
+        return -1.0, -1.0
     mx = sums[1] / n
     my = sums[2] / n
     mz = sums[3] / n
@@ -43,12 +54,13 @@ def smallest_eigen(sums, normal):  # pragma: no cover - compiled
     b22 = a22 - q
     p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * off
     if p2 <= 1e-30 * (q * q + 1e-300):
-        return -1.0
+        return -1.0, -1.0
     p = math.sqrt(p2 / 6.0)
     det = (b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)) / (p * p * p)
     half = min(max(det / 2.0, -1.0), 1.0)
     phi = math.acos(half) / 3.0
     smallest = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
+    middle = 3.0 * q - smallest - (q + 2.0 * p * math.cos(phi))
     # Rows of C - smallest * I; the normal is orthogonal to all of them.
     r0x, r0y, r0z = a00 - smallest, a01, a02
     r1x, r1y, r1z = a01, a11 - smallest, a12
@@ -66,12 +78,12 @@ def smallest_eigen(sums, normal):  # pragma: no cover - compiled
     else:
         vx, vy, vz, d = c2x, c2y, c2z, d2
     if d <= 0.0:
-        return -1.0
+        return -1.0, -1.0
     norm = math.sqrt(d)
     normal[0] = vx / norm
     normal[1] = vy / norm
     normal[2] = vz / norm
-    return max(smallest, 0.0)
+    return max(smallest, 0.0), max(middle, 0.0)
 
 
 def planes_from_moments(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -25,7 +25,12 @@ Two ways to set the scale ``kappa`` (`anisotropic_diffusion`'s ``mode``):
   of the difference of two neighbouring readings, either from the sensor's
   noise model (``range_sigma``, per pixel: time-of-flight noise grows with
   range and on dark surfaces, so the threshold does too) or, without one,
-  estimated robustly from the frame itself.
+  estimated robustly from the frame itself. A pair's threshold comes from
+  the less noisy of its two readings (``sqrt(2) * min(sigma_p, sigma_q)``):
+  on one surface the two are nearly equal, and across a depth jump the far,
+  noisier side would otherwise raise the threshold until the jump leaks.
+  Metric mode's default step is 0.2 (diffusion time 2 in the default 10
+  iterations), twice the thesis's.
 
 References
 ----------
@@ -86,6 +91,8 @@ METRIC_KAPPA_MULTIPLES: Mapping[str, float] = MappingProxyType(
 )
 
 _THESIS_KAPPA = 20.0
+# Default step per mode: the thesis's lambda, and twice it in metres.
+_DEFAULT_STEPS = {"thesis": 0.1, "metric": 0.2}
 _THESIS_GREY_LEVELS = 255.0
 # 1 / Phi^-1(3/4): turns the median absolute deviation of normal data into
 # its standard deviation (as in Black et al. 1998).
@@ -112,7 +119,7 @@ def anisotropic_diffusion(
     *,
     iterations: int = 10,
     kappa: float | None = None,
-    step: float = 0.1,
+    step: float | None = None,
     conduction: Conduction = "exponential",
     mode: Mode = "metric",
     range_sigma: ArrayLike | float | None = None,
@@ -140,9 +147,12 @@ def anisotropic_diffusion(
         normalised image; ``"metric"`` ``METRIC_KAPPA_MULTIPLES[conduction]``
         times the noise standard deviation of a neighbour difference (see
         ``range_sigma``).
-    step : float
+    step : float, optional
         Diffusion speed lambda per iteration, in ``(0, 0.25]``; larger steps
-        make the explicit scheme oscillate. The thesis uses 0.1.
+        make the explicit scheme oscillate. Default: ``"thesis"`` 0.1 (the
+        thesis's value); ``"metric"`` 0.2, which on simulated SR-3000 and
+        Kinect frames (``benchmarks/denoise_quality.py``) gives a lower RMSE
+        and sharper depth edges than 0.1 with the sensor noise model.
     conduction : {"exponential", "rational", "tukey"}
         Edge-stopping function ``g``: ``exp(-(d/kappa)**2)`` (thesis Eq. 3.2,
         medpy ``option=1``), ``1 / (1 + (d/kappa)**2)`` (Eq. 3.3, medpy
@@ -157,16 +167,18 @@ def anisotropic_diffusion(
         ``"metric"`` mode without ``kappa`` only: standard deviation of each
         reading (metres), e.g. ``sensor.range_sigma(frame.range,
         frame.intensity)``, > 0 wherever there is a return. The pair of
-        pixels ``p, q`` then has ``kappa = multiple * sqrt(sigma_p**2 +
-        sigma_q**2)``, so that the edge threshold follows range- and
-        brightness-dependent time-of-flight noise. A number is one sigma
-        for the whole frame. Without it the noise standard deviation of a
-        neighbour difference is estimated from the frame: ``1.4826 * MAD``
-        of the valid neighbour differences (robust to the minority of
-        differences that cross edges; from evenly spaced rows, about 16 000
-        differences, in large frames). That estimate is frame-wide, so a
-        region's result then depends on the rest of the frame; give
-        ``kappa`` or ``range_sigma`` for a purely local filter.
+        pixels ``p, q`` then has ``kappa = multiple * sqrt(2) *
+        min(sigma_p, sigma_q)``, so that the edge threshold follows range-
+        and brightness-dependent time-of-flight noise: the noise of a
+        difference on a surface, where the two sigmas are nearly equal, but
+        across a depth jump that of the nearer, less noisy side. A number
+        is one sigma for the whole frame. Without it the noise standard
+        deviation of a neighbour difference is estimated from the frame:
+        ``1.4826 * MAD`` of the valid neighbour differences (robust to the
+        minority of differences that cross edges; from evenly spaced rows,
+        about 16 000 differences, in large frames). That estimate is
+        frame-wide, so a region's result then depends on the rest of the
+        frame; give ``kappa`` or ``range_sigma`` for a purely local filter.
 
     Returns
     -------
@@ -227,9 +239,9 @@ def anisotropic_diffusion(
     """
     image = check_range_image(range_image)
     iterations = _check_iterations(iterations)
-    step = _check_step(step)
-    code = _check_conduction(conduction)
     _check_mode(mode)
+    step = _check_step(_DEFAULT_STEPS[mode] if step is None else step)
+    code = _check_conduction(conduction)
     if kappa is not None:
         kappa = _check_kappa(kappa)
     multiple = METRIC_KAPPA_MULTIPLES[conduction]
@@ -475,6 +487,7 @@ _LARGEST_EXPONENT = np.float32(100.0)
 _LARGEST_EXPONENT_BITS = np.uint32(_LARGEST_EXPONENT.view(np.uint32))
 # float32 lanes of an AVX-512 register: rows are padded to a multiple of it.
 _VECTOR = 16
+_SQRT2 = math.sqrt(2.0)
 # Largest magnitude of a scaled value: differences of two stay finite.
 _LARGEST_SCALED = np.float32(1e37)
 
@@ -655,7 +668,7 @@ def _diffuse_kernel(image, offset, scale, step, iterations, code):  # pragma: no
 
 @numba.njit(**_EXACT_JIT)
 def _pair_scales_kernel(image, sigma, factor):  # pragma: no cover - compiled
-    """``factor / sqrt(sigma_p**2 + sigma_q**2)`` per east and south pair, ``(H, L)`` float32 each.
+    """``factor / (sqrt(2) * min(sigma_p, sigma_q))`` per east and south pair, ``(H, L)`` float32 each.
 
     0 for pairs with a NaN end (their flux is zeroed anyway); saturated at
     the largest float32 rather than Inf, whose product with a zero
@@ -676,9 +689,9 @@ def _pair_scales_kernel(image, sigma, factor):  # pragma: no cover - compiled
                     n_bad += 1
                     continue
                 if j + 1 < width and image[i, j + 1] == image[i, j + 1]:
-                    scale_east[i, j] = min(factor / math.sqrt(value * value + sigma[i, j + 1] ** 2), largest)
+                    scale_east[i, j] = min(factor / (_SQRT2 * min(value, sigma[i, j + 1])), largest)
                 if i + 1 < height and image[i + 1, j] == image[i + 1, j]:
-                    scale_south[i, j] = min(factor / math.sqrt(value * value + sigma[i + 1, j] ** 2), largest)
+                    scale_south[i, j] = min(factor / (_SQRT2 * min(value, sigma[i + 1, j])), largest)
     return scale_east, scale_south, n_bad
 
 
@@ -797,14 +810,14 @@ def _diffuse_pairwise(
 
 
 def _pair_kappas_reference(image: np.ndarray, sigma: np.ndarray, multiple: float) -> tuple[np.ndarray, np.ndarray]:
-    """``multiple * sqrt(sigma_p**2 + sigma_q**2)`` per east ``(H, W - 1)`` and south ``(H - 1, W)`` pair.
+    """``multiple * sqrt(2) * min(sigma_p, sigma_q)`` per east ``(H, W - 1)`` and south ``(H - 1, W)`` pair.
 
     NaN for pairs with a hole at either end.
     """
-    variance = np.where(np.isnan(image), np.nan, np.asarray(sigma, np.float64)) ** 2
+    sigma = np.where(np.isnan(image), np.nan, np.asarray(sigma, np.float64))
     return (
-        multiple * np.sqrt(variance[:, :-1] + variance[:, 1:]),
-        multiple * np.sqrt(variance[:-1, :] + variance[1:, :]),
+        multiple * math.sqrt(2.0) * np.minimum(sigma[:, :-1], sigma[:, 1:]),
+        multiple * math.sqrt(2.0) * np.minimum(sigma[:-1, :], sigma[1:, :]),
     )
 
 

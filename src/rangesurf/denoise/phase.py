@@ -68,8 +68,8 @@ PHASE_PRESETS: Mapping[str, tuple[float, int, float, int]] = MappingProxyType({
 _MEDIAN_TO_RAYLEIGH_MEAN = 0.5 * math.sqrt(-math.pi / math.log(0.5))
 # ... and standard deviation = sqrt((4 - pi) / pi) * mean.
 _RAYLEIGH_STD_ON_MEAN = math.sqrt((4.0 - math.pi) / math.pi)
-# Filter spectra transformed in one FFT call, at most this many complex64
-# values (about 32 MB), so large frames do not exhaust memory.
+# Filter spectra held at once, at most this many complex64 values (about
+# 32 MB, shared among the threads), so large frames do not exhaust memory.
 _BATCH_VALUES = 4_000_000
 # Threads sharing the orientations of one frame (`_band_sums`), and the smallest
 # frame worth the hand-over.
@@ -347,6 +347,10 @@ def _band_sums(
     helpers = [_executor(threads - 1).submit(_drain, *arguments) for _ in range(threads - 1)]
     removed, kept = _drain(*arguments)
     for helper in helpers:
+        # A helper that has not started (a busy machine; or a forked child, which
+        # has the executor but not its thread) finds the queue empty: skip it.
+        if helper.cancel():
+            continue
         helper_removed, helper_kept = helper.result()
         removed += helper_removed
         kept += helper_kept
@@ -382,7 +386,9 @@ def _drain(queue, spectrum: np.ndarray, bank: _Bank, k: float, softness: float, 
         for first in range(0, n_filters, batch):
             stop = min(n_filters, first + batch)
             in_batch = slice(first, stop)
-            _filter_products(spectrum, bank.radial, bank.angular, scale_of[in_batch], orientation_of[in_batch], products)
+            _filter_products(
+                spectrum, bank.radial, bank.angular, scale_of[in_batch], orientation_of[in_batch], products
+            )
             responses = _inverse_fft(products[: stop - first])
             for index in range(first, stop):
                 if scale_of[index] == 0:

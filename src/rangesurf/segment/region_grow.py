@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_range_sigma
-from rangesurf._planefit import planes_from_moments
+from rangesurf._planefit import plane_eigen, planes_from_moments
 from rangesurf.segment._segmentation import Segmentation
 
 __all__ = ["grow_regions"]
@@ -304,16 +304,13 @@ def _bevels(labels: np.ndarray, moments: np.ndarray) -> np.ndarray:
     neither is small. A thin face that is not between two others (a box side
     seen edge-on, a strip cut off by the image border) stays.
     """
-    height, width = labels.shape
-    rows, cols = np.mgrid[0:height, 0:width]
-    flat = labels.ravel()
-    count = np.bincount(flat, minlength=len(moments)).astype(float)
+    pixel = _pixel_moments(labels, len(moments))
+    count = pixel[:, 0]
     with np.errstate(divide="ignore", invalid="ignore"):
-        mean_r = np.bincount(flat, rows.ravel(), len(moments)) / count
-        mean_c = np.bincount(flat, cols.ravel(), len(moments)) / count
-        rr = np.bincount(flat, rows.ravel() ** 2.0, len(moments)) / count - mean_r**2
-        cc = np.bincount(flat, cols.ravel() ** 2.0, len(moments)) / count - mean_c**2
-        rc = np.bincount(flat, (rows * cols).ravel().astype(float), len(moments)) / count - mean_r * mean_c
+        mean_r, mean_c = pixel[:, 1] / count, pixel[:, 2] / count
+        rr = pixel[:, 3] / count - mean_r**2
+        rc = pixel[:, 4] / count - mean_r * mean_c
+        cc = pixel[:, 5] / count - mean_c**2
     # Smaller eigenvalue of the 2x2 pixel covariance; a band of width w has variance w^2 / 12 across.
     minor = (rr + cc) / 2 - np.sqrt(((rr - cc) / 2) ** 2 + rc**2)
     thin = np.flatnonzero((count > 0) & (np.sqrt(12 * np.maximum(minor, 0)) < _BEVEL_WIDTH))
@@ -399,7 +396,7 @@ def _add_moments(moments, region, x, y, z):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _fit(moments, region, plane, noise):  # pragma: no cover - compiled
+def _fit(moments, region, plane, noise, normal):  # pragma: no cover - compiled
     """Refit ``plane`` (nx, ny, nz, d) from the region's moments.
 
     The fitted normal replaces the current one only once the region spreads
@@ -408,20 +405,12 @@ def _fit(moments, region, plane, noise):  # pragma: no cover - compiled
     the seed pixel's normal (estimated over a whole window), so only the
     offset is moved to the region's centroid.
     """
-    n = moments[region, 0]
-    mean = moments[region, 1:4] / n
-    covariance = np.empty((3, 3))
-    covariance[0, 0] = moments[region, 4] / n - mean[0] * mean[0]
-    covariance[0, 1] = covariance[1, 0] = moments[region, 5] / n - mean[0] * mean[1]
-    covariance[0, 2] = covariance[2, 0] = moments[region, 6] / n - mean[0] * mean[2]
-    covariance[1, 1] = moments[region, 7] / n - mean[1] * mean[1]
-    covariance[1, 2] = covariance[2, 1] = moments[region, 8] / n - mean[1] * mean[2]
-    covariance[2, 2] = moments[region, 9] / n - mean[2] * mean[2]
-    values, vectors = np.linalg.eigh(covariance)
-    if values[1] > (_SUPPORT_SIGMAS * noise) ** 2:
+    smallest, middle = plane_eigen(moments[region], normal)
+    if smallest >= 0.0 and middle > (_SUPPORT_SIGMAS * noise) ** 2:
         for k in range(3):
-            plane[k] = vectors[k, 0]
-    d = -(plane[0] * mean[0] + plane[1] * mean[1] + plane[2] * mean[2])
+            plane[k] = normal[k]
+    n = moments[region, 0]
+    d = -(plane[0] * moments[region, 1] + plane[1] * moments[region, 2] + plane[2] * moments[region, 3]) / n
     if d < 0.0:
         for k in range(3):
             plane[k] = -plane[k]
@@ -455,6 +444,7 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
     queue_j = np.empty(height * width, np.int32)
     moments = np.zeros((64, 10))
     plane = np.empty(4)
+    normal = np.empty(3)
     region = 0
     for seed in order:
         si, sj = seed // width, seed % width
@@ -505,7 +495,7 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
                 queue_j[tail] = qj
                 tail += 1
                 if tail >= next_fit:
-                    _fit(moments, region, plane, seed_noise)
+                    _fit(moments, region, plane, seed_noise, normal)
                     n0, n1, n2, n3 = plane[0], plane[1], plane[2], plane[3]
                     next_fit = tail * _REFIT_GROWTH
         if tail < min_size:
@@ -513,7 +503,7 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
             # take its neighbours' chance to seed a region of their own.
             for k in range(tail):
                 labels[queue_i[k], queue_j[k]] = 0
-            spent[si, sj] = True
+                spent[queue_i[k], queue_j[k]] = True
             moments[region, :] = 0.0
             region -= 1
     return labels, moments[: region + 1].copy()
@@ -576,6 +566,24 @@ def _trim_labels(points, labels, planes, limits):  # pragma: no cover - compiled
             if not (abs(offset) <= limits[label]):
                 kept[i, j] = 0
     return kept
+
+
+@numba.njit(**_JIT)
+def _pixel_moments(labels, n_labels):  # pragma: no cover - compiled
+    """Per label: pixel count and sums of row, column, row^2, row*column, column^2."""
+    height, width = labels.shape
+    moments = np.zeros((n_labels, 6))
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label > 0:
+                moments[label, 0] += 1.0
+                moments[label, 1] += i
+                moments[label, 2] += j
+                moments[label, 3] += i * i
+                moments[label, 4] += i * j
+                moments[label, 5] += j * j
+    return moments
 
 
 @numba.njit(**_JIT)
