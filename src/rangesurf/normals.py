@@ -315,66 +315,50 @@ def _inverse_depth_normals(
     window); a pixel with no clean window (at a jump or a hole) gets a total
     least-squares fit of the neighbours on its side of the jump.
     """
-    depth = np.where(valid, points[..., 2], np.nan)
-    inverse = np.zeros(depth.shape, np.float32)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        np.divide(1.0, depth, out=inverse, where=valid & (depth > 0))
-    usable = valid & (depth > 0) & ~jumps
-    # A one-pixel hole (a removed outlier) would spoil every window around it; on a plane the mean
-    # inverse depth of its two opposite neighbours is exact, so it is filled for the sums only.
-    usable = _fill_pinholes(inverse, usable)
-    # Centred on its median, so that float32 sums keep the residual's digits.
-    centre = float(np.median(inverse[usable])) if usable.any() else 0.0
-    centred = np.where(usable, inverse - centre, 0.0).astype(np.float32)
-    stacked = np.dstack([centred, centred * centred, usable.astype(np.float32)])
-    fits = np.empty((len(sizes), 6) + depth.shape, np.float32)
+    height, width = valid.shape
+    # Centred on a median (of a sample: any value near the data's will do), so that float32 sums
+    # keep the residual's digits.
+    depth = points[..., 2]
+    sample = depth[::7, ::7][valid[::7, ::7] & (depth[::7, ::7] > 0)]
+    centre = float(np.median(1.0 / sample)) if sample.size else 0.0
+    stacked = np.empty((height, width, 3), np.float32)
+    centred = np.empty((height, width), np.float32)
+    usable = _inverse_depth_channels(points, valid, jumps, centre, stacked, centred)
+    boxes = np.empty((len(sizes), height, width, 3), np.float32)
+    ramps = np.empty((len(sizes), 2, height, width), np.float32)
     for index, size in enumerate(sizes):
         half = size // 2
         ones = np.ones(size, np.float32)
         ramp = np.arange(-half, half + 1, dtype=np.float32)
-        box = cv2.sepFilter2D(stacked, cv2.CV_32F, ones, ones, borderType=cv2.BORDER_CONSTANT)
-        fits[index, 0] = box[..., 0]
-        fits[index, 1] = box[..., 1]
-        fits[index, 2] = box[..., 2]
-        fits[index, 3] = cv2.sepFilter2D(centred, cv2.CV_32F, ramp, ones, borderType=cv2.BORDER_CONSTANT)
-        fits[index, 4] = cv2.sepFilter2D(centred, cv2.CV_32F, ones, ramp, borderType=cv2.BORDER_CONSTANT)
-    fits[:, 5] = 0.0
-    if sigma is None:
-        noise_variance = -1.0 * np.ones(depth.shape)
-    else:
-        # Range noise as noise of 1 / z: d(1/z) = dz / z^2, and dz is about dr z / r.
-        with np.errstate(invalid="ignore"):
-            noise_variance = np.square(sigma * depth / distance / np.square(depth))
-        noise_variance = np.where(valid, noise_variance, 0.0)
+        cv2.sepFilter2D(stacked, cv2.CV_32F, ones, ones, dst=boxes[index], borderType=cv2.BORDER_CONSTANT)
+        cv2.sepFilter2D(centred, cv2.CV_32F, ramp, ones, dst=ramps[index, 0], borderType=cv2.BORDER_CONSTANT)
+        cv2.sepFilter2D(centred, cv2.CV_32F, ones, ramp, dst=ramps[index, 1], borderType=cv2.BORDER_CONSTANT)
     sizes_array = np.asarray(sizes, np.int64)
-    noise_variance = _estimate_noise_if_unknown(fits, sizes_array, usable, noise_variance)
-    sigma_or_nan = np.full(depth.shape, np.nan) if sigma is None else sigma
+    if sigma is None:
+        # Without a noise model: the median residual of the smallest clean windows, for every pixel.
+        noise = _median_window_noise(boxes[0], ramps[0], int(sizes[0]), usable)
+        sigma_or_nan = np.full((height, width), np.nan)
+    else:
+        noise = -1.0
+        sigma_or_nan = sigma
     return _ladder_kernel(
-        fits, sizes_array, centre, noise_variance, points, valid, distance, sigma_or_nan, depth_jump,
+        boxes, ramps, sizes_array, centre, noise, points, valid, distance, sigma_or_nan, depth_jump,
         float(projection.fx), float(projection.fy), float(projection.cx), float(projection.cy), _GATED_RADIUS,
     )
 
 
-def _estimate_noise_if_unknown(fits: np.ndarray, sizes: np.ndarray, usable: np.ndarray, noise_variance: np.ndarray) -> np.ndarray:
-    """Per-pixel variance of 1/z noise; without a sensor model, the median residual of the smallest clean windows."""
-    if noise_variance.min() >= 0:
-        return noise_variance
-    size = int(sizes[0])
-    count = fits[0, 2]
-    clean = usable & (count == size * size)
-    if not clean.any():
-        return np.zeros(usable.shape)
-    residual = _residual(fits[0], size)[clean] / (size * size - 3)
-    return np.full(usable.shape, float(np.median(residual)))
-
-
-def _residual(fit: np.ndarray, size: int) -> np.ndarray:
-    """Sum of squared residuals of the affine fit over full windows (box, squares, count, ramps)."""
+def _median_window_noise(box: np.ndarray, ramp: np.ndarray, size: int, usable: np.ndarray) -> float:
+    """Variance of 1/z noise: median plane-fit residual variance of the full, clean windows of ``size``."""
     n = float(size * size)
+    clean = usable & (box[..., 2] == n)
+    if not clean.any():
+        return 0.0
     half = size // 2
-    ramp_energy = size * half * (half + 1) * (2 * half + 1) / 3.0
-    total, squares, ramp_s, ramp_t = (fit[k].astype(np.float64) for k in (0, 1, 3, 4))
-    return np.maximum(squares - total * total / n - (ramp_s * ramp_s + ramp_t * ramp_t) / ramp_energy, 0.0)
+    energy = size * half * (half + 1) * (2 * half + 1) / 3.0
+    total, squares = box[..., 0][clean].astype(np.float64), box[..., 1][clean].astype(np.float64)
+    slopes = ramp[0][clean].astype(np.float64) ** 2 + ramp[1][clean].astype(np.float64) ** 2
+    residual = np.maximum(squares - total * total / n - slopes / energy, 0.0)
+    return float(np.median(residual)) / (n - 3.0)
 
 
 # --------------------------------------------------------------------------
@@ -638,6 +622,41 @@ def _is_ramp(distance, valid, i, j, di, dj):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
+def _inverse_depth_channels(points, valid, jumps, centre, stacked, centred):  # pragma: no cover - compiled
+    """Fill ``stacked`` (1/z - centre, its square, usable) and ``centred``; returns the usable mask.
+
+    A pixel is usable when valid and not at a depth jump. A one-pixel hole (a
+    removed outlier) would spoil every window around it; on a plane the mean
+    inverse depth of its two opposite neighbours is exact, so such holes are
+    filled (for the sums only) and count as usable.
+    """
+    height, width = valid.shape
+    inverse = np.zeros((height, width), np.float32)
+    usable = np.zeros((height, width), np.bool_)
+    for i in range(height):
+        for j in range(width):
+            z = points[i, j, 2]
+            if valid[i, j] and z > 0 and not jumps[i, j]:
+                inverse[i, j] = 1.0 / z
+                usable[i, j] = True
+    filled = _fill_pinholes(inverse, usable)
+    for i in range(height):
+        for j in range(width):
+            if filled[i, j]:
+                value = inverse[i, j] - centre
+                centred[i, j] = value
+                stacked[i, j, 0] = value
+                stacked[i, j, 1] = value * value
+                stacked[i, j, 2] = 1.0
+            else:
+                centred[i, j] = 0.0
+                stacked[i, j, 0] = 0.0
+                stacked[i, j, 1] = 0.0
+                stacked[i, j, 2] = 0.0
+    return filled
+
+
+@numba.njit(**_JIT)
 def _fill_pinholes(inverse, usable):  # pragma: no cover - compiled
     """Fill unusable pixels whose left and right (or upper and lower) neighbours are usable, in place."""
     height, width = usable.shape
@@ -656,7 +675,8 @@ def _fill_pinholes(inverse, usable):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _ladder_kernel(fits, sizes, centre, noise_variance, points, valid, distance, sigma, depth_jump, fx, fy, cx, cy, gated_radius):  # pragma: no cover - compiled
+def _ladder_kernel(boxes, ramps, sizes, centre, noise, points, valid, distance, sigma, depth_jump, fx, fy, cx, cy, gated_radius):  # pragma: no cover - compiled
+    """Normals from the window fits (``noise``: variance of 1/z, or < 0 to take it from ``sigma``)."""
     height, width = valid.shape
     normals = np.full((height, width, 3), np.nan, dtype=np.float32)
     radius = np.full((height, width), -1, np.int16)
@@ -671,16 +691,21 @@ def _ladder_kernel(fits, sizes, centre, noise_variance, points, valid, distance,
             for index in range(n_sizes - 1, -1, -1):
                 size = sizes[index]
                 n = float(size * size)
-                if fits[index, 2, i, j] != n:
+                if boxes[index, i, j, 2] != n:
                     continue
                 half = size // 2
                 energy = size * half * (half + 1) * (2 * half + 1) / 3.0
-                total = float(fits[index, 0, i, j])
-                ramp_s = float(fits[index, 3, i, j])
-                ramp_t = float(fits[index, 4, i, j])
+                total = float(boxes[index, i, j, 0])
+                ramp_s = float(ramps[index, 0, i, j])
+                ramp_t = float(ramps[index, 1, i, j])
                 if index > 0:
-                    residual = float(fits[index, 1, i, j]) - total * total / n - (ramp_s * ramp_s + ramp_t * ramp_t) / energy
-                    allowed = noise_variance[i, j] * (n - 3.0) * (1.0 + 3.0 * math.sqrt(2.0 / (n - 3.0)))
+                    if noise >= 0.0:
+                        variance = noise
+                    else:
+                        # Range noise as noise of 1/z: d(1/z) = dz / z^2 and dz is about dr z / r.
+                        variance = (sigma[i, j] / (distance[i, j] * points[i, j, 2])) ** 2
+                    residual = float(boxes[index, i, j, 1]) - total * total / n - (ramp_s * ramp_s + ramp_t * ramp_t) / energy
+                    allowed = variance * (n - 3.0) * (1.0 + 3.0 * math.sqrt(2.0 / (n - 3.0)))
                     if residual > allowed:
                         continue
                 # 1/z = a s + b t + c around the pixel; as A u + B v + C the plane's normal is -(A, B, C).
