@@ -13,7 +13,14 @@ Every segmenter returns a `Segmentation` (labels, planes, residuals, sizes);
 
 from rangesurf.segment._frame import SEGMENTERS, SegmentedFrame, segment_frame
 from rangesurf.segment._segmentation import Segmentation
-from rangesurf.segment.evaluate import SegmentationScores, evaluate_segmentation, truth_labels, truth_segmentation
+from rangesurf.segment.evaluate import (
+    SegmentationScores,
+    evaluate_segmentation,
+    match_planes,
+    transform_planes,
+    truth_labels,
+    truth_segmentation,
+)
 from rangesurf.segment.nxd import nxd_transform, segment_nxd
 from rangesurf.segment.region_grow import grow_regions
 
@@ -24,9 +31,11 @@ __all__ = [
     "SegmentationScores",
     "evaluate_segmentation",
     "grow_regions",
+    "match_planes",
     "nxd_transform",
     "segment_frame",
     "segment_nxd",
+    "transform_planes",
     "truth_labels",
     "truth_segmentation",
 ]

@@ -30,7 +30,7 @@ import numpy as np
 from rangesurf.segment._segmentation import Segmentation
 from rangesurf.simulate import GroundTruth
 
-__all__ = ["SegmentationScores", "evaluate_segmentation", "truth_labels", "truth_segmentation"]
+__all__ = ["SegmentationScores", "evaluate_segmentation", "match_planes", "transform_planes", "truth_labels", "truth_segmentation"]
 
 # The tolerance is compared as a fraction num / den in integer arithmetic, so
 # that an overlap of exactly T * M pixels counts (0.7 * 10 is 7.000000000000001
@@ -618,3 +618,55 @@ def truth_segmentation(
         labels=renumber[parts], planes=planes, residuals=residuals,
         sizes=np.concatenate([[unlabelled], sizes[order]]).astype(np.int64),
     )
+
+
+def transform_planes(planes: np.ndarray, T_target_source: np.ndarray) -> np.ndarray:
+    """Planes ``(K, 4)`` (``n . p + d = 0`` in the source frame) expressed in the target frame.
+
+    Examples
+    --------
+    >>> T = np.eye(4); T[:3, 3] = (0, 0, 1)  # the source frame sits 1 m along target z
+    >>> transform_planes(np.array([[0.0, 0.0, -1.0, 2.0]]), T)
+    array([[ 0.,  0., -1.,  3.]])
+    """
+    planes = np.atleast_2d(np.asarray(planes, dtype=np.float64))
+    rotation, translation = T_target_source[:3, :3], T_target_source[:3, 3]
+    normals = planes[:, :3] @ rotation.T
+    return np.column_stack([normals, planes[:, 3] - normals @ translation])
+
+
+def match_planes(
+    planes: np.ndarray, others: np.ndarray, *, max_angle: float = 5.0, max_offset: float = 0.1
+) -> list[tuple[int, int, float, float]]:
+    """Pair each plane with the most parallel plane of another set that lies within an offset.
+
+    Parameters
+    ----------
+    planes, others : (K, 4) and (L, 4) float arrays
+        ``(nx, ny, nz, d)`` in one frame (see `transform_planes`); NaN rows
+        are skipped.
+    max_angle : float
+        Degrees between the normals (sign ignored).
+    max_offset : float
+        Metres between the planes' distances from the origin.
+
+    Returns
+    -------
+    list of (index, other_index, angle_deg, offset_m)
+        One entry per matched row of ``planes``.
+    """
+    planes = np.atleast_2d(np.asarray(planes, dtype=np.float64))
+    others = np.atleast_2d(np.asarray(others, dtype=np.float64))
+    matches = []
+    for index, (normal, offset) in enumerate(zip(planes[:, :3], planes[:, 3])):
+        if not np.isfinite(normal).all():
+            continue
+        cosine = others[:, :3] @ normal
+        sign = np.where(cosine < 0, -1.0, 1.0)
+        angles = np.degrees(np.arccos(np.clip(np.abs(cosine), 0.0, 1.0)))
+        offsets = np.abs(sign * others[:, 3] - offset)
+        fits = np.flatnonzero((angles <= max_angle) & (offsets <= max_offset))
+        if fits.size:
+            best = fits[np.argmin(angles[fits])]
+            matches.append((index, int(best), float(angles[best]), float(offsets[best])))
+    return matches
