@@ -7,7 +7,7 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["check_range_image", "check_range_sigma"]
+__all__ = ["check_point_grid", "check_range_image", "check_range_sigma"]
 
 
 def check_range_image(range_image: Any, name: str = "range image", *, dtype: Any = np.float32) -> np.ndarray:
@@ -56,3 +56,22 @@ def check_range_sigma(image: np.ndarray, range_sigma: Any) -> np.ndarray:
     if bad.any():
         raise ValueError(f"range_sigma must be finite and > 0 wherever there is a return; {int(bad.sum())} pixels are not")
     return np.ascontiguousarray(sigma)
+
+
+def check_point_grid(points: Any, name: str = "points") -> np.ndarray:
+    """Return an organized ``(H, W, 3)`` grid as C-contiguous float32, or raise a ValueError saying what is wrong.
+
+    NaN marks missing values; Inf is refused.
+    """
+    array = np.asarray(points)
+    if array.ndim != 3 or array.shape[2] != 3:
+        raise ValueError(f"{name} must be an organized (H, W, 3) grid, got shape {array.shape}")
+    if not np.issubdtype(array.dtype, np.floating):
+        raise ValueError(f"{name} must be a float array (NaN where invalid), got dtype {array.dtype}")
+    array = np.ascontiguousarray(array, dtype=np.float32)
+    # Inf survives a sum as Inf or NaN; only then is the (slower) exact count needed.
+    if not math.isfinite(float(np.nansum(array, dtype=np.float64))):
+        n_infinite = int(np.count_nonzero(np.isinf(array)))
+        if n_infinite:
+            raise ValueError(f"{name} contain Inf ({n_infinite} values); mark missing values with NaN")
+    return array
