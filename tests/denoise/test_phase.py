@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+from concurrent.futures import Future
+
 import numpy as np
 import pytest
 from _synthetic import RANGE_NOISE_ONLY, range_image
 
 import rangesurf as rs
+from rangesurf.denoise import phase
 from rangesurf.denoise.phase import (
     PHASE_PRESETS,
     _denoise_reference,
@@ -121,6 +124,38 @@ def test_median_amplitude_is_exact(shape):
     expected = np.median(np.abs(response.astype(np.complex128)))
     # float32 squares and square roots: a few float32 ulps.
     assert _median_amplitude(response) == pytest.approx(expected, rel=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("values", "expected"),
+    [([1.0, 2.0], 1.5), ([2.0, 1.0, 8.0, 4.0], 3.0), ([0.0, 0.0, 1e-3, 5.0], 5e-4), ([3.0, 1e-3, 7.0], 3.0)],
+)
+def test_median_amplitude_across_radix_buckets(values, expected):
+    """Middle values whose squares differ in their top 11 bits (exponents) lie in different radix buckets."""
+    response = np.array([values], np.complex64) * np.complex64(0.6 + 0.8j)  # amplitude = value
+    assert _median_amplitude(response) == pytest.approx(expected, rel=1e-6, abs=0)
+
+
+def test_threads_agree_with_one_thread(monkeypatch):
+    """Orientations shared between threads give the single-threaded sums, up to float32 summation order."""
+    image = range_image((96, 128), seed=6)
+    shared = phase_preserving_denoise(image, preset="thesis-a")
+    monkeypatch.setattr(phase, "_THREADS", 1)
+    alone = phase_preserving_denoise(image, preset="thesis-a")
+    np.testing.assert_allclose(shared, alone, rtol=0, atol=1e-6, equal_nan=True)
+
+
+def test_a_helper_thread_that_never_starts_does_not_block(monkeypatch):
+    """After a fork the executor exists but its thread does not: the calling thread does all the work."""
+
+    class Stalled:
+        def submit(self, *args):
+            return Future()  # pending for ever
+
+    image = range_image((96, 128), seed=6)
+    expected = phase_preserving_denoise(image, preset="thesis-b")
+    monkeypatch.setattr(phase, "_executor", lambda workers: Stalled())
+    np.testing.assert_allclose(phase_preserving_denoise(image, preset="thesis-b"), expected, rtol=0, atol=1e-6)
 
 
 def test_filter_bank_is_cached_and_read_only():
