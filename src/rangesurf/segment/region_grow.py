@@ -163,7 +163,7 @@ def grow_regions(
     distance, valid = ranges(points)
     sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
     sigma = np.where(valid, sigma, np.nan)
-    growable = valid & np.isfinite(normals).all(axis=2)
+    growable = _with_normal(valid, normals)
     order = _seed_order(normals, growable, math.cos(math.radians(max_angle / 2)))
     labels, moments = _grow_kernel(
         points,
@@ -179,24 +179,23 @@ def grow_regions(
         float(_FIRST_FIT),
     )
     planes, _ = planes_from_moments(moments)
-    _refine_boundaries(points, distance, sigma, labels, planes, float(depth_jump))
-    moments = _label_moments(points, labels, len(moments))
+    _refine_boundaries(points, distance, sigma, labels, planes, moments, float(depth_jump))
     planes, _ = planes_from_moments(moments)
     # Planes are fitted to what growing found (the core), not to the outline pixels absorbed below.
     core = labels.copy()
-    _absorb_kernel(points, distance, sigma, valid, labels, planes, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
-    moments = _label_moments(points, labels, len(moments))
+    _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
     if merge:
         roots, moments = _merge_coplanar(labels, moments, math.cos(math.radians(max_angle)))
         labels, core = roots[labels], roots[core]
     bevels = _bevels(labels, moments)
     if bevels.size:
-        labels[np.isin(labels, bevels)] = 0
-        core[np.isin(core, bevels)] = 0
+        dissolved = np.zeros(len(moments), bool)
+        dissolved[bevels] = True
+        labels[dissolved[labels]] = 0
+        core[dissolved[core]] = 0
         moments[bevels] = 0
         planes, _ = planes_from_moments(moments)
-        _absorb_kernel(points, distance, sigma, valid, labels, planes, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
-        moments = _label_moments(points, labels, len(moments))
+        _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
     unlabelled = int(np.count_nonzero(valid & (labels == 0)))
     core_moments = _label_moments(points, core, len(moments))
     return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, core, core_moments))
@@ -226,7 +225,7 @@ def _seed_order(normals: np.ndarray, growable: np.ndarray, min_coherence: float)
     rounds into a bevel, or at an edge) never seed: a region started there
     would be a sliver between two faces. They can still join a region.
     """
-    filled = np.where(growable[..., None], normals, 0.0).astype(np.float32)
+    filled = _zero_where_not(normals, growable)
     total = cv2.boxFilter(filled, -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
     count = cv2.boxFilter(growable.astype(np.float32), -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
     return _seeds_by_coherence(total, count, growable, min_coherence)
@@ -337,8 +336,8 @@ def _interior_moments(points: np.ndarray, labels: np.ndarray, moments: np.ndarra
     fit = _label_moments(points, interior, len(moments))
     too_small = fit[:, 0] < np.maximum(_MIN_INTERIOR, _MIN_INTERIOR_FRACTION * moments[:, 0])
     fit[too_small] = moments[too_small]
-    interior[np.isin(interior, np.flatnonzero(too_small))] = 0
-    interior = np.where(interior > 0, interior, np.where(np.isin(labels, np.flatnonzero(too_small)), labels, 0))
+    # Segments with too small an interior are fitted whole.
+    interior = np.where(too_small[labels], labels, interior).astype(np.int32)
     # One trimming pass: points more than _TRIM_RMS residual RMS off the plane (a rounded crease,
     # a stray pixel) leave the fit.
     planes, rms = planes_from_moments(fit)
@@ -351,18 +350,62 @@ def _interior_moments(points: np.ndarray, labels: np.ndarray, moments: np.ndarra
 
 def _neighbour_pairs(labels: np.ndarray) -> np.ndarray:
     """Distinct (a, b), a < b, of segments within two pixels of each other along a row or column."""
-    found = []
-    for step in (1, 2):
-        for a, b in ((labels[:, :-step], labels[:, step:]), (labels[:-step], labels[step:])):
-            mask = (a != b) & (a > 0) & (b > 0)
-            found.append(np.stack([np.minimum(a[mask], b[mask]), np.maximum(a[mask], b[mask])], axis=1))
-    pairs = np.concatenate(found)
-    return np.unique(pairs, axis=0) if len(pairs) else pairs
+    codes = _neighbour_codes(labels, int(labels.max(initial=0)) + 1)
+    count = int(labels.max(initial=0)) + 1
+    codes = np.unique(codes)
+    return np.stack([codes // count, codes % count], axis=1).astype(np.int64)
+
+
+@numba.njit(**_JIT)
+def _neighbour_codes(labels, count):  # pragma: no cover - compiled
+    """``a * count + b`` for every pixel pair (a < b, both labelled) one or two apart along a row or column."""
+    height, width = labels.shape
+    codes = np.empty(4 * height * width, np.int64)
+    found = 0
+    for i in range(height):
+        for j in range(width):
+            a = labels[i, j]
+            if a <= 0:
+                continue
+            for di, dj in ((0, 1), (0, 2), (1, 0), (2, 0)):
+                qi, qj = i + di, j + dj
+                if qi >= height or qj >= width:
+                    continue
+                b = labels[qi, qj]
+                if b <= 0 or b == a:
+                    continue
+                codes[found] = min(a, b) * count + max(a, b)
+                found += 1
+    return codes[:found]
 
 
 # --------------------------------------------------------------------------
 # Kernels.
 # --------------------------------------------------------------------------
+
+
+@numba.njit(**_JIT)
+def _with_normal(valid, normals):  # pragma: no cover - compiled
+    """Valid pixels whose normal is known."""
+    height, width = valid.shape
+    usable = np.zeros((height, width), np.bool_)
+    for i in range(height):
+        for j in range(width):
+            usable[i, j] = valid[i, j] and normals[i, j, 0] == normals[i, j, 0] and normals[i, j, 2] == normals[i, j, 2]
+    return usable
+
+
+@numba.njit(**_JIT)
+def _zero_where_not(values, mask):  # pragma: no cover - compiled
+    """Copy of ``values`` (H, W, C) with 0 where ``mask`` is False."""
+    out = np.zeros(values.shape, np.float32)
+    height, width = mask.shape
+    for i in range(height):
+        for j in range(width):
+            if mask[i, j]:
+                for k in range(values.shape[2]):
+                    out[i, j, k] = values[i, j, k]
+    return out
 
 
 @numba.njit(**_JIT)
@@ -394,17 +437,18 @@ def _seeds_by_coherence(total, count, growable, min_coherence):  # pragma: no co
 
 
 @numba.njit(**_JIT, inline="always")
-def _add_moments(moments, region, x, y, z):  # pragma: no cover - compiled
-    moments[region, 0] += 1.0
+def _add_moments(moments, region, x, y, z, weight=1.0):  # pragma: no cover - compiled
+    """Add a point to (``weight`` 1) or remove it from (``weight`` -1, with -x, -y, -z) a region's moments."""
+    moments[region, 0] += weight
     moments[region, 1] += x
     moments[region, 2] += y
     moments[region, 3] += z
-    moments[region, 4] += x * x
-    moments[region, 5] += x * y
-    moments[region, 6] += x * z
-    moments[region, 7] += y * y
-    moments[region, 8] += y * z
-    moments[region, 9] += z * z
+    moments[region, 4] += weight * x * x
+    moments[region, 5] += weight * x * y
+    moments[region, 6] += weight * x * z
+    moments[region, 7] += weight * y * y
+    moments[region, 8] += weight * y * z
+    moments[region, 9] += weight * z * z
 
 
 @numba.njit(**_JIT)
@@ -522,7 +566,7 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
 
 
 @numba.njit(**_JIT)
-def _refine_boundaries(points, distance, sigma, labels, planes, depth_jump):  # pragma: no cover - compiled
+def _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_jump):  # pragma: no cover - compiled
     """Move each boundary pixel to the neighbouring segment whose plane it fits best (in place).
 
     Growing is greedy: the region that reaches a pixel first keeps it, so
@@ -562,6 +606,8 @@ def _refine_boundaries(points, distance, sigma, labels, planes, depth_jump):  # 
                         best_distance = gap
             if best != own and best_distance <= 3.0 * sigma[i, j]:
                 labels[i, j] = best
+                _add_moments(moments, own, -x, -y, -z, -1.0)
+                _add_moments(moments, best, x, y, z, 1.0)
 
 
 @numba.njit(**_JIT)
@@ -612,7 +658,7 @@ def _label_moments(points, labels, n_labels):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _absorb_kernel(points, distance, sigma, valid, labels, planes, distance_sigmas, depth_jump, sweeps):  # pragma: no cover - compiled
+def _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, distance_sigmas, depth_jump, sweeps):  # pragma: no cover - compiled
     """Give free pixels to the neighbouring segment whose plane is nearest, ring by ring (in place).
 
     Outline pixels often have spoiled normals (their window straddled the
@@ -651,6 +697,7 @@ def _absorb_kernel(points, distance, sigma, valid, labels, planes, distance_sigm
                         best_gap = gap
                 if best > 0:
                     labels[i, j] = best
+                    _add_moments(moments, best, x, y, z, 1.0)
                     changed += 1
         if changed == 0:
             break
