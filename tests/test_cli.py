@@ -110,7 +110,7 @@ def test_readme_error_example_is_what_a_truncated_line_gives(tmp_path, capsys):
 def test_segment_writes_labels_that_match_truth_and_a_figure(tmp_path, capsys):
     import cv2
 
-    from rangesurf.segment import evaluate_segmentation, truth_labels
+    from rangesurf.segment import evaluate_segmentation, truth_segmentation
 
     main(["simulate", "--frames", "1", "--out", str(tmp_path / "sim"), "--quiet"])
     truth = rs.simulate.load_ground_truth(tmp_path / "sim" / "truth" / "truth000000.npz")
@@ -118,7 +118,8 @@ def test_segment_writes_labels_that_match_truth_and_a_figure(tmp_path, capsys):
     assert main(["segment", str(tmp_path / "sim" / "frame000000.npz"), "--out", str(tmp_path / "seg"), "--quiet"]) == 0
     with np.load(tmp_path / "seg" / "frame000000_segments.npz") as saved:
         labels, planes = saved["labels"], saved["planes"]
-    scores = evaluate_segmentation(truth_labels(truth, frame.rays), labels, truth_planes=truth.planes,
+    gt = truth_segmentation(truth, frame.rays)
+    scores = evaluate_segmentation(gt.labels, labels, truth_planes=gt.planes,
                                    machine_planes=planes, min_region_size=100)
     assert scores.correct >= scores.n_truth - 1 and scores.n_truth >= 4
     figure = cv2.imread(str(tmp_path / "seg" / "frame000000_segments.png"))

@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from rangesurf import simulate
-from rangesurf.segment import evaluate_segmentation, nxd_transform, segment_frame, segment_nxd, truth_labels
+from rangesurf.segment import evaluate_segmentation, nxd_transform, segment_frame, segment_nxd, truth_segmentation
 
 
 def wall_and_box():
@@ -49,7 +49,8 @@ def test_small_clusters_are_noise():
 def test_simulated_frame_finds_the_large_planes():
     frames, truths = simulate.simulate_sequence("arena", "sr3000", 1, seed=4)
     result = segment_frame(frames[0], segmenter="nxd")
-    scores = evaluate_segmentation(truth_labels(truths[0], frames[0].rays), result.segmentation.labels, min_region_size=2000)
+    scores = evaluate_segmentation(truth_segmentation(truths[0], frames[0].rays).labels, result.segmentation.labels,
+                                   min_region_size=2000)
     assert scores.n_truth >= 2 and scores.correct >= scores.n_truth - 1
 
 

@@ -8,7 +8,7 @@ from rangesurf.denoise import denoise_range
 from rangesurf.frame import get_sensor
 from rangesurf.normals import estimate_normals
 from rangesurf.segment import Segmentation, grow_regions
-from rangesurf.segment.evaluate import evaluate_segmentation, truth_labels
+from rangesurf.segment.evaluate import evaluate_segmentation, truth_segmentation
 
 SR3000 = get_sensor("sr3000")
 RAYS = SR3000.projection.directions(*SR3000.shape)
@@ -87,8 +87,9 @@ def test_simulated_arena_after_denoising(sensor, frames):
         normals = estimate_normals(points, projection=frame.sensor.projection, range_sigma=sigma)
         result = grow_regions(points, normals, range_sigma=sigma)
         min_size = round(100 * smooth.size / (176 * 144))
+        gt = truth_segmentation(truth, frame.rays)
         scores = evaluate_segmentation(
-            truth_labels(truth, frame.rays), result.labels, truth_planes=truth.planes,
+            gt.labels, result.labels, truth_planes=gt.planes,
             machine_planes=result.planes, min_region_size=min_size,
         )
         correct += scores.correct

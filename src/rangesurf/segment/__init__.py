@@ -4,7 +4,7 @@
   al. 2008), the main segmenter;
 * `nxd_transform`, `segment_nxd` -- the thesis's normal x distance space and
   segmentation by clustering in it;
-* `evaluate_segmentation`, `truth_labels` -- the Hoover et al. 1996
+* `evaluate_segmentation`, `truth_segmentation` -- the Hoover et al. 1996
   comparison against ground-truth labels (the field's standard score).
 
 Every segmenter returns a `Segmentation` (labels, planes, residuals, sizes);
@@ -18,7 +18,6 @@ from rangesurf.segment.evaluate import (
     evaluate_segmentation,
     match_planes,
     transform_planes,
-    truth_labels,
     truth_segmentation,
 )
 from rangesurf.segment.nxd import nxd_transform, segment_nxd
@@ -36,6 +35,5 @@ __all__ = [
     "segment_frame",
     "segment_nxd",
     "transform_planes",
-    "truth_labels",
     "truth_segmentation",
 ]

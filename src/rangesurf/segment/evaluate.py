@@ -30,7 +30,7 @@ import numpy as np
 from rangesurf.segment._segmentation import Segmentation
 from rangesurf.simulate import GroundTruth
 
-__all__ = ["SegmentationScores", "evaluate_segmentation", "match_planes", "transform_planes", "truth_labels", "truth_segmentation"]
+__all__ = ["SegmentationScores", "evaluate_segmentation", "match_planes", "transform_planes", "truth_segmentation"]
 
 # The tolerance is compared as a fraction num / den in integer arithmetic, so
 # that an overlap of exactly T * M pixels counts (0.7 * 10 is 7.000000000000001
@@ -506,7 +506,7 @@ def _group(keys: list[int], members: list[int]) -> tuple[tuple[int, tuple[int, .
     return tuple((key, tuple(sorted(groups[key]))) for key in sorted(groups))
 
 
-def truth_labels(
+def _truth_labels(
     truth: GroundTruth, rays: np.ndarray, *, max_incidence: float = 80.0, planar_only: bool = True
 ) -> np.ndarray:
     """Ground-truth label image of a simulated frame for `evaluate_segmentation`.
@@ -542,7 +542,7 @@ def truth_labels(
     --------
     >>> from rangesurf import simulate
     >>> frames, truths = simulate.simulate_sequence("arena", "sr3000", n_frames=1)
-    >>> labels = truth_labels(truths[0], frames[0].rays)
+    >>> labels = _truth_labels(truths[0], frames[0].rays)
     >>> bool((labels > 0).mean() > 0.8)
     True
     """
@@ -568,7 +568,7 @@ def truth_segmentation(
 ) -> Segmentation:
     """The ground truth of a simulated frame as a `Segmentation` to score against.
 
-    As `truth_labels`, and each surface split into its 4-connected parts:
+    As `_truth_labels`, and each surface split into its 4-connected parts:
     SegComp's ground-truth regions are connected, and the simulator gives
     one id to every piece of a surface (a wall interrupted by a door is two
     regions to find, not one). Each part keeps its surface's plane.
@@ -580,7 +580,7 @@ def truth_segmentation(
     rays : (H, W, 3) float array
         Unit viewing directions of the frame (``frame.rays``).
     max_incidence, planar_only
-        As for `truth_labels`.
+        As for `_truth_labels`.
 
     Returns
     -------
@@ -593,10 +593,10 @@ def truth_segmentation(
     >>> from rangesurf import simulate
     >>> frames, truths = simulate.simulate_sequence("corridor", "sr3000", n_frames=1)
     >>> parts = truth_segmentation(truths[0], frames[0].rays)
-    >>> bool(parts.n_segments > len(np.unique(truth_labels(truths[0], frames[0].rays))) - 1)
+    >>> bool(parts.n_segments > len(np.unique(_truth_labels(truths[0], frames[0].rays))) - 1)
     True
     """
-    labels = truth_labels(truth, rays, max_incidence=max_incidence, planar_only=planar_only)
+    labels = _truth_labels(truth, rays, max_incidence=max_incidence, planar_only=planar_only)
     parts = np.zeros(labels.shape, np.int32)
     surface_of_part = [0]
     for surface in np.unique(labels[labels > 0]):
