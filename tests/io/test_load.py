@@ -85,3 +85,16 @@ def test_sensor_override_applies_to_every_frame(tmp_path):
     rs.save(tmp_path / "a.npz", _wall_frame(1.0))
     with pytest.raises(ValueError, match="unknown sensor"):
         rs.load(tmp_path, sensor="nonexistent")
+
+
+def test_written_files_get_ordinary_permissions(tmp_path):
+    """Atomic writes go through a private temporary file; the result must not stay private."""
+    import os
+    import stat
+
+    frame = rs.RangeFrame(rays=rs.get_sensor("sr3000").rays(), range=np.full((144, 176), 2.0, np.float32),
+                          sensor=rs.get_sensor("sr3000"))
+    (out,) = rs.save(tmp_path / "frame.npz", frame)
+    mask = os.umask(0)
+    os.umask(mask)
+    assert stat.S_IMODE(os.stat(out).st_mode) == 0o666 & ~mask

@@ -27,6 +27,13 @@ class FormatError(ValueError):
         super().__init__(f"{location}: {problem}")
 
 
+def _umask() -> int:
+    """The process's file-creation mask (reading it means setting it; set it straight back)."""
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 @contextlib.contextmanager
 def atomic_path(path: str | os.PathLike, *, suffix: str | None = None) -> Iterator[Path]:
     """Yield a temporary path beside ``path``; rename it onto ``path`` on success.
@@ -45,6 +52,8 @@ def atomic_path(path: str | os.PathLike, *, suffix: str | None = None) -> Iterat
     temporary_path = Path(temporary)
     try:
         yield temporary_path
+        # mkstemp creates the file private (0600); the output gets the permissions any new file would.
+        os.chmod(temporary_path, 0o666 & ~_umask())
         os.replace(temporary_path, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):
