@@ -135,7 +135,12 @@ def segmentation_figure(range_image: np.ndarray, labels: np.ndarray, nxd: np.nda
     """Thesis Figure 3.5 for one frame: grey range, segments over it, and the NxD cloud coloured by segment."""
     from rangesurf.edges import normalize_range
 
-    grey = normalize_range(range_image).astype(np.uint8)
+    finite = np.isfinite(range_image)
+    # Percentiles, not the extremes: a few far returns would leave the scene black.
+    valid_range = tuple(np.percentile(range_image[finite], [1, 99])) if finite.sum() > 1 else None
+    if valid_range is not None and not valid_range[0] < valid_range[1]:
+        valid_range = None
+    grey = normalize_range(range_image, valid_range=valid_range).astype(np.uint8)
     background = cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR)
     background[~np.isfinite(range_image)] = _NO_RETURN_BGR
     height, width = grey.shape
