@@ -61,6 +61,10 @@ def test_demo_reports_errors_consistent_with_the_sensor_model(tmp_path, capsys):
         # Median |e| of a zero-mean spread sigma is about 0.67 sigma.
         assert 0.3 * median_sigma_mm < median_error_mm < 1.2 * median_sigma_mm
         assert denoised_rmse_mm < 0.75 * rmse_mm
+        # Planar segments: nearly every true plane found, with plane normals within a few degrees.
+        correct, truth_count = (int(value) for value in row[12].split("/"))
+        assert truth_count >= 4 and correct >= truth_count - 1
+        assert float(row[13]) < 3.0
 
 
 def test_errors_exit_2_with_a_message_naming_the_file(tmp_path, capsys):
