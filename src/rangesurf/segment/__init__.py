@@ -8,10 +8,11 @@
   comparison against ground-truth labels (the field's standard score).
 
 Every segmenter returns a `Segmentation` (labels, planes, residuals, sizes);
-`segment_frame` runs denoising, normals and a segmenter on one `RangeFrame`.
+`segment_planes` runs normals and region growing (decimating large frames),
+`segment_frame` denoising, normals and a segmenter on one `RangeFrame`.
 """
 
-from rangesurf.segment._frame import SEGMENTERS, SegmentedFrame, segment_frame
+from rangesurf.segment._frame import SEGMENTERS, SegmentedFrame, segment_frame, segment_planes
 from rangesurf.segment._segmentation import Segmentation
 from rangesurf.segment.evaluate import (
     SegmentationScores,
@@ -21,7 +22,7 @@ from rangesurf.segment.evaluate import (
     truth_segmentation,
 )
 from rangesurf.segment.nxd import nxd_transform, segment_nxd
-from rangesurf.segment.region_grow import grow_regions
+from rangesurf.segment.region_grow import grow_regions, refine_upsampled
 
 __all__ = [
     "SEGMENTERS",
@@ -32,8 +33,10 @@ __all__ = [
     "grow_regions",
     "match_planes",
     "nxd_transform",
+    "refine_upsampled",
     "segment_frame",
     "segment_nxd",
+    "segment_planes",
     "transform_planes",
     "truth_segmentation",
 ]

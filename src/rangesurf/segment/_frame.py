@@ -2,20 +2,91 @@
 
 from __future__ import annotations
 
+import dataclasses
+import math
+import functools
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.typing import ArrayLike
 
+from rangesurf._checks import check_point_grid
 from rangesurf.denoise import denoise_range
 from rangesurf.frame import PinholeProjection, RangeFrame
 from rangesurf.normals import estimate_normals
 from rangesurf.segment._segmentation import Segmentation
 from rangesurf.segment.nxd import segment_nxd
-from rangesurf.segment.region_grow import grow_regions
+from rangesurf.segment.region_grow import grow_regions, refine_upsampled
 
-__all__ = ["SEGMENTERS", "SegmentedFrame", "segment_frame"]
+__all__ = ["SEGMENTERS", "SegmentedFrame", "segment_frame", "segment_planes"]
 
 SEGMENTERS = ("region", "nxd")
+
+
+# Large frames are grown on a grid decimated to about this many pixels, then refined at full resolution.
+_GROWING_PIXELS = 40_000
+
+
+def segment_planes(
+    points: ArrayLike,
+    *,
+    range_sigma: ArrayLike | float,
+    projection: PinholeProjection | None = None,
+    decimate: int | None = None,
+) -> Segmentation:
+    """Normals and region growing in one call, decimating large frames for speed.
+
+    Parameters
+    ----------
+    points : (H, W, 3) float array
+        Sensor-frame points (metres), NaN where invalid (preferably denoised).
+    range_sigma : float or (H, W) array
+        Range noise sigma (metres), e.g. ``sensor.range_sigma(range, intensity)``.
+    projection : PinholeProjection, optional
+        Enables the fast pinhole normal path (`estimate_normals`).
+    decimate : int, optional
+        Grow the regions on ``points[::decimate, ::decimate]`` and carry them
+        back to full resolution (`refine_upsampled`). Default: the factor
+        that leaves about 40,000 pixels to grow on (3 for 640x480, 1 for
+        an SR-3000 or a 3DTK scan). On simulated 640x480 frames factors 2-4
+        find the same planes as growing at full resolution, with normal
+        errors as low, in a third of the time.
+
+    Returns
+    -------
+    Segmentation
+
+    Examples
+    --------
+    >>> from rangesurf import simulate
+    >>> frames, _ = simulate.simulate_sequence("arena", "kinect", n_frames=1)
+    >>> frame = frames[0]
+    >>> sigma = frame.sensor.range_sigma(frame.range, frame.intensity)
+    >>> planes = segment_planes(frame.points, range_sigma=sigma, projection=frame.sensor.projection)
+    >>> planes.labels.shape, planes.n_segments >= 6
+    ((480, 640), True)
+    """
+    points = check_point_grid(points)
+    height, width = points.shape[:2]
+    if decimate is None:
+        decimate = max(1, round(math.sqrt(height * width / _GROWING_PIXELS)))
+    if isinstance(decimate, bool) or not isinstance(decimate, (int, np.integer)) or decimate < 1:
+        raise ValueError(f"decimate must be an integer >= 1, got {decimate!r}")
+    sigma = np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width))
+    if decimate == 1:
+        normals = estimate_normals(points, projection=projection, range_sigma=sigma)
+        return grow_regions(points, normals, range_sigma=sigma)
+    coarse_points = np.ascontiguousarray(points[::decimate, ::decimate])
+    coarse_sigma = np.ascontiguousarray(sigma[::decimate, ::decimate])
+    coarse_projection = None
+    if projection is not None:
+        # Pixel i of the decimated grid is pixel decimate * i of the full one.
+        coarse_projection = PinholeProjection(
+            fx=projection.fx / decimate, fy=projection.fy / decimate, cx=projection.cx / decimate, cy=projection.cy / decimate
+        )
+    normals = estimate_normals(coarse_points, projection=coarse_projection, range_sigma=coarse_sigma)
+    coarse = grow_regions(coarse_points, normals, range_sigma=coarse_sigma)
+    return refine_upsampled(points, coarse, decimate, range_sigma=sigma)
 
 
 @dataclass(frozen=True)
@@ -28,19 +99,24 @@ class SegmentedFrame:
         The denoised range (metres), NaN where invalid.
     points : (H, W, 3) float32
         Sensor-frame points of ``range``.
-    normals : (H, W, 3) float32
-        Unit normals facing the sensor, NaN where unknown.
     range_sigma : (H, W) float64
         Noise sigma used for the thresholds (metres).
     segmentation : Segmentation
         Labels, planes, residuals, sizes.
+    projection : PinholeProjection or None
+        The camera's, for the fast normal path.
     """
 
     range: np.ndarray
     points: np.ndarray
-    normals: np.ndarray
     range_sigma: np.ndarray
     segmentation: Segmentation
+    projection: PinholeProjection | None = None
+
+    @functools.cached_property
+    def normals(self) -> np.ndarray:
+        """(H, W, 3) float32 full-resolution normals (`estimate_normals`), computed on first use."""
+        return estimate_normals(self.points, projection=self.projection, range_sigma=self.range_sigma)
 
 
 def segment_frame(frame: RangeFrame, *, denoise: str = "diffusion", segmenter: str = "region") -> SegmentedFrame:
@@ -55,7 +131,7 @@ def segment_frame(frame: RangeFrame, *, denoise: str = "diffusion", segmenter: s
     denoise : {"diffusion", "layered", "phase", "none"}
         `rangesurf.denoise.denoise_range` method ("none": outlier removal only).
     segmenter : {"region", "nxd"}
-        `grow_regions` (region growing) or `segment_nxd` (the thesis's
+        `segment_planes` (region growing) or `segment_nxd` (the thesis's
         clustering in normal x distance space).
 
     Returns
@@ -77,9 +153,9 @@ def segment_frame(frame: RangeFrame, *, denoise: str = "diffusion", segmenter: s
     points = (frame.rays * smooth[..., None]).astype(np.float32)
     sigma = frame.sensor.range_sigma(np.where(np.isfinite(smooth), smooth, 1.0), frame.intensity)
     projection = frame.sensor.projection if isinstance(frame.sensor.projection, PinholeProjection) else None
-    normals = estimate_normals(points, projection=projection, range_sigma=sigma)
+    result = SegmentedFrame(range=smooth, points=points, range_sigma=sigma, segmentation=None, projection=projection)
     if segmenter == "region":
-        segmentation = grow_regions(points, normals, range_sigma=sigma)
+        segmentation = segment_planes(points, range_sigma=sigma, projection=projection)
     else:
-        segmentation = segment_nxd(points, normals)
-    return SegmentedFrame(range=smooth, points=points, normals=normals, range_sigma=sigma, segmentation=segmentation)
+        segmentation = segment_nxd(points, result.normals)
+    return dataclasses.replace(result, segmentation=segmentation)

@@ -46,7 +46,7 @@ from rangesurf._grid import ranges
 from rangesurf._planefit import plane_eigen, planes_from_moments
 from rangesurf.segment._segmentation import Segmentation
 
-__all__ = ["grow_regions"]
+__all__ = ["grow_regions", "refine_upsampled"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 # Refit the plane when the region has grown by this factor since the last fit.
@@ -182,11 +182,14 @@ def grow_regions(
     _refine_boundaries(points, distance, sigma, labels, planes, moments, float(depth_jump))
     planes, _ = planes_from_moments(moments)
     # Planes are fitted to what growing found (the core), not to the outline pixels absorbed below.
-    core = labels.copy()
+    core, core_moments = labels.copy(), moments.copy()
     _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
     if merge:
         roots, moments = _merge_coplanar(labels, moments, math.cos(math.radians(max_angle)))
         labels, core = roots[labels], roots[core]
+        merged_core = np.zeros_like(core_moments)
+        np.add.at(merged_core, roots, core_moments)
+        core_moments = merged_core
     bevels = _bevels(labels, moments)
     if bevels.size:
         dissolved = np.zeros(len(moments), bool)
@@ -194,10 +197,67 @@ def grow_regions(
         labels[dissolved[labels]] = 0
         core[dissolved[core]] = 0
         moments[bevels] = 0
+        core_moments[bevels] = 0
         planes, _ = planes_from_moments(moments)
         _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
     unlabelled = int(np.count_nonzero(valid & (labels == 0)))
-    core_moments = _label_moments(points, core, len(moments))
+    return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, core, core_moments))
+
+
+def refine_upsampled(
+    points: ArrayLike,
+    coarse: Segmentation,
+    factor: int,
+    *,
+    range_sigma: ArrayLike | float,
+    distance_sigmas: float = 3.0,
+    depth_jump: float = 0.05,
+) -> Segmentation:
+    """Carry a segmentation of the grid decimated by ``factor`` (``points[::factor, ::factor]``) to full resolution.
+
+    Each pixel takes its block's label, pixels off their segment's plane by
+    more than ``distance_sigmas`` noise sigmas are released, outline pixels
+    move to the neighbouring segment whose plane is nearest, and free pixels
+    are absorbed ring by ring, as in `grow_regions`; planes are refitted to
+    the full-resolution interiors. Growing on a 2x decimated 640x480 frame
+    finds the same planes (a 614-pixel segment still has 150 pixels there)
+    in about a quarter of the time.
+
+    Parameters
+    ----------
+    points : (H, W, 3) float array
+        Full-resolution sensor-frame points, NaN where invalid.
+    coarse : Segmentation
+        Of ``points[::factor, ::factor]``.
+    factor : int
+        Decimation factor, >= 1.
+    range_sigma, distance_sigmas, depth_jump
+        As for `grow_regions`.
+
+    Returns
+    -------
+    Segmentation
+    """
+    points = check_point_grid(points)
+    height, width = points.shape[:2]
+    if isinstance(factor, bool) or not isinstance(factor, (int, np.integer)) or factor < 1:
+        raise ValueError(f"factor must be an integer >= 1, got {factor!r}")
+    expected = (-(-height // factor), -(-width // factor))
+    if coarse.labels.shape != expected:
+        raise ValueError(f"coarse labels {coarse.labels.shape} do not match ({height}, {width}) decimated by {factor}: {expected}")
+    distance, valid = ranges(points)
+    sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
+    sigma = np.where(valid, sigma, np.nan)
+    labels = np.repeat(np.repeat(coarse.labels, factor, axis=0), factor, axis=1)[:height, :width].astype(np.int32)
+    labels[~valid] = 0
+    planes = np.array(coarse.planes, dtype=np.float64)
+    _release_misfits(points, sigma, labels, planes, float(distance_sigmas))
+    moments = _label_moments(points, labels, len(planes))
+    _refine_boundaries(points, distance, sigma, labels, planes, moments, float(depth_jump))
+    core, core_moments = labels.copy(), moments.copy()
+    planes, _ = planes_from_moments(moments)
+    _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS + factor)
+    unlabelled = int(np.count_nonzero(valid & (labels == 0)))
     return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, core, core_moments))
 
 
@@ -608,6 +668,20 @@ def _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_j
                 labels[i, j] = best
                 _add_moments(moments, own, -x, -y, -z, -1.0)
                 _add_moments(moments, best, x, y, z, 1.0)
+
+
+@numba.njit(**_JIT)
+def _release_misfits(points, sigma, labels, planes, distance_sigmas):  # pragma: no cover - compiled
+    """Set to 0 (in place) the labelled pixels farther than ``distance_sigmas`` sigmas from their plane."""
+    height, width = labels.shape
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label <= 0:
+                continue
+            offset = planes[label, 0] * points[i, j, 0] + planes[label, 1] * points[i, j, 1] + planes[label, 2] * points[i, j, 2] + planes[label, 3]
+            if not (abs(offset) <= distance_sigmas * sigma[i, j]):
+                labels[i, j] = 0
 
 
 @numba.njit(**_JIT)
