@@ -163,3 +163,36 @@ def test_bad_arrays_are_refused():
 
 def test_result_type():
     assert isinstance(segment(on_plane((0, 0, -1), 2.0)), Segmentation)
+
+
+def test_decimated_growing_finds_the_same_planes_at_full_resolution():
+    from rangesurf.segment import segment_planes
+
+    frames, truths = simulate.simulate_sequence("corridor", "kinect", 1, seed=3)
+    frame, truth = frames[0], truths[0]
+    smooth = denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)
+    points = (frame.rays * smooth[..., None]).astype(np.float32)
+    sigma = frame.sensor.range_sigma(np.where(np.isfinite(smooth), smooth, 1.0), frame.intensity)
+    gt = truth_segmentation(truth, frame.rays)
+    results = {}
+    for decimate in (1, 3):
+        result = segment_planes(points, range_sigma=sigma, projection=frame.sensor.projection, decimate=decimate)
+        assert result.labels.shape == smooth.shape
+        results[decimate] = evaluate_segmentation(gt.labels, result.labels, truth_planes=gt.planes,
+                                                  machine_planes=result.planes, min_region_size=1200)
+    assert results[3].n_truth >= 5
+    assert results[3].correct >= results[1].correct - 1
+    assert results[3].mean_normal_error_deg < 1.0
+
+
+def test_refine_upsampled_checks_its_inputs():
+    from rangesurf.segment import refine_upsampled
+
+    plane = on_plane((0, 0, -1), 2.0).astype(np.float32)
+    coarse = segment(plane[::2, ::2])
+    result = refine_upsampled(plane, coarse, 2, range_sigma=0.002)
+    assert result.n_segments == 1 and result.sizes[1] == plane.shape[0] * plane.shape[1]
+    with pytest.raises(ValueError, match="decimated by 3"):
+        refine_upsampled(plane, coarse, 3, range_sigma=0.002)
+    with pytest.raises(ValueError, match="factor"):
+        refine_upsampled(plane, coarse, 0, range_sigma=0.002)
