@@ -11,9 +11,24 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["smallest_eigen", "plane_eigen", "planes_from_moments", "plane_rms"]
+__all__ = ["add_point", "smallest_eigen", "plane_eigen", "planes_from_moments", "plane_rms"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+
+
+@numba.njit(**_JIT, inline="always")
+def add_point(sums, x, y, z, weight=1.0):  # pragma: no cover - compiled
+    """Add a point to (``weight`` 1) or take it from (``weight`` -1, with -x, -y, -z) the 10 moments ``sums``."""
+    sums[0] += weight
+    sums[1] += x
+    sums[2] += y
+    sums[3] += z
+    sums[4] += weight * x * x
+    sums[5] += weight * x * y
+    sums[6] += weight * x * z
+    sums[7] += weight * y * y
+    sums[8] += weight * y * z
+    sums[9] += weight * z * z
 
 
 @numba.njit(**_JIT)

@@ -47,6 +47,7 @@ from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf._grid import ranges
+from rangesurf._planefit import add_point
 from rangesurf._planefit import smallest_eigen as _smallest_eigen
 from rangesurf.frame import PinholeProjection
 
@@ -420,19 +421,7 @@ def _integral_moments(points, valid, origin):  # pragma: no cover - compiled
         row[:] = 0.0
         for j in range(width):
             if valid[i, j]:
-                x = points[i, j, 0] - origin[0]
-                y = points[i, j, 1] - origin[1]
-                z = points[i, j, 2] - origin[2]
-                row[0] += 1.0
-                row[1] += x
-                row[2] += y
-                row[3] += z
-                row[4] += x * x
-                row[5] += x * y
-                row[6] += x * z
-                row[7] += y * y
-                row[8] += y * z
-                row[9] += z * z
+                add_point(row, points[i, j, 0] - origin[0], points[i, j, 1] - origin[1], points[i, j, 2] - origin[2], 1.0)
             for k in range(10):
                 table[i + 1, j + 1, k] = table[i, j + 1, k] + row[k]
     return table
@@ -508,19 +497,7 @@ def _gated_sums(points, valid, distance, sigma, depth_jump, i, j, radius, sums):
         for c in range(max(j - radius, 0), min(j + radius + 1, width)):
             if not valid[r, c] or abs(distance[r, c] - centre) > gate:
                 continue
-            x = points[r, c, 0] - ox
-            y = points[r, c, 1] - oy
-            z = points[r, c, 2] - oz
-            sums[0] += 1.0
-            sums[1] += x
-            sums[2] += y
-            sums[3] += z
-            sums[4] += x * x
-            sums[5] += x * y
-            sums[6] += x * z
-            sums[7] += y * y
-            sums[8] += y * z
-            sums[9] += z * z
+            add_point(sums, points[r, c, 0] - ox, points[r, c, 1] - oy, points[r, c, 2] - oz, 1.0)
 
 
 @numba.njit(**_JIT)

@@ -450,23 +450,17 @@ def evaluate_segmentation(
     # Over-segmentation: the machine regions mostly inside a GT region (each
     # machine region is mostly inside at most one) jointly cover enough of it.
     candidate = covers_machine & ~truth_correct[pair_truth] & ~machine_correct[pair_machine]
-    parts = np.bincount(pair_truth[candidate], minlength=n_truth)
-    covered = np.bincount(pair_truth[candidate], weights=overlap[candidate], minlength=n_truth).astype(np.int64)
-    truth_over = (parts >= 2) & (covered * den >= num * truth_size)
-    in_over = candidate & truth_over[pair_truth]
-    machine_over = np.zeros(n_machine, bool)
-    machine_over[pair_machine[in_over]] = True
+    truth_over, machine_over, in_over = _split_regions(
+        candidate, pair_truth, truth_size, pair_machine, n_machine, overlap, num, den
+    )
 
     # Under-segmentation: the mirror image, among regions not yet classified.
     truth_used = truth_correct | truth_over
     machine_used = machine_correct | machine_over
     candidate = covers_truth & ~truth_used[pair_truth] & ~machine_used[pair_machine]
-    parts = np.bincount(pair_machine[candidate], minlength=n_machine)
-    covered = np.bincount(pair_machine[candidate], weights=overlap[candidate], minlength=n_machine).astype(np.int64)
-    machine_under = (parts >= 2) & (covered * den >= num * machine_size)
-    in_under = candidate & machine_under[pair_machine]
-    truth_under = np.zeros(n_truth, bool)
-    truth_under[pair_truth[in_under]] = True
+    machine_under, truth_under, in_under = _split_regions(
+        candidate, pair_machine, machine_size, pair_truth, n_truth, overlap, num, den
+    )
 
     truth_missed = truth_kept & ~(truth_correct | truth_over | truth_under)
     machine_noise = machine_kept & ~(machine_correct | machine_over | machine_under)
@@ -496,6 +490,21 @@ def evaluate_segmentation(
         noise_labels=tuple(machine_values[machine_noise].tolist()),
         normal_errors_deg=normal_errors,
     )
+
+
+def _split_regions(candidate, whole_index, whole_size, part_index, n_parts, overlap, num, den):
+    """Regions split into 2 or more candidate parts that jointly cover at least T of them, those parts, and the pairs.
+
+    Over-segmentation with GT regions as the wholes and machine regions as the
+    parts; under-segmentation the other way round.
+    """
+    parts = np.bincount(whole_index[candidate], minlength=len(whole_size))
+    covered = np.bincount(whole_index[candidate], weights=overlap[candidate], minlength=len(whole_size)).astype(np.int64)
+    split = (parts >= 2) & (covered * den >= num * whole_size)
+    in_split = candidate & split[whole_index]
+    part_flags = np.zeros(n_parts, bool)
+    part_flags[part_index[in_split]] = True
+    return split, part_flags, in_split
 
 
 def _group(keys: list[int], members: list[int]) -> tuple[tuple[int, tuple[int, ...]], ...]:

@@ -43,7 +43,7 @@ from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf._grid import ranges
-from rangesurf._planefit import plane_eigen, planes_from_moments
+from rangesurf._planefit import add_point, plane_eigen, planes_from_moments
 from rangesurf.segment._segmentation import Segmentation
 
 __all__ = ["grow_regions", "refine_upsampled"]
@@ -251,7 +251,8 @@ def refine_upsampled(
     labels = np.repeat(np.repeat(coarse.labels, factor, axis=0), factor, axis=1)[:height, :width].astype(np.int32)
     labels[~valid] = 0
     planes = np.array(coarse.planes, dtype=np.float64)
-    _release_misfits(points, sigma, labels, planes, float(distance_sigmas))
+    with np.errstate(invalid="ignore"):
+        labels[_plane_offsets(points, labels, planes) > distance_sigmas * sigma] = 0
     moments = _label_moments(points, labels, len(planes))
     _refine_boundaries(points, distance, sigma, labels, planes, moments, float(depth_jump))
     core, core_moments = labels.copy(), moments.copy()
@@ -401,7 +402,9 @@ def _interior_moments(points: np.ndarray, labels: np.ndarray, moments: np.ndarra
     # One trimming pass: points more than _TRIM_RMS residual RMS off the plane (a rounded crease,
     # a stray pixel) leave the fit.
     planes, rms = planes_from_moments(fit)
-    trimmed = _trim_labels(points, interior.astype(np.int32), planes, _TRIM_RMS * np.nan_to_num(rms, nan=np.inf))
+    interior = interior.astype(np.int32)
+    limits = _TRIM_RMS * np.nan_to_num(rms, nan=np.inf)
+    trimmed = np.where(_plane_offsets(points, interior, planes) <= limits[interior], interior, 0).astype(np.int32)
     refit = _label_moments(points, trimmed, len(moments))
     keep = refit[:, 0] >= np.maximum(3, 0.5 * fit[:, 0])
     fit[keep] = refit[keep]
@@ -498,17 +501,8 @@ def _seeds_by_coherence(total, count, growable, min_coherence):  # pragma: no co
 
 @numba.njit(**_JIT, inline="always")
 def _add_moments(moments, region, x, y, z, weight=1.0):  # pragma: no cover - compiled
-    """Add a point to (``weight`` 1) or remove it from (``weight`` -1, with -x, -y, -z) a region's moments."""
-    moments[region, 0] += weight
-    moments[region, 1] += x
-    moments[region, 2] += y
-    moments[region, 3] += z
-    moments[region, 4] += weight * x * x
-    moments[region, 5] += weight * x * y
-    moments[region, 6] += weight * x * z
-    moments[region, 7] += weight * y * y
-    moments[region, 8] += weight * y * z
-    moments[region, 9] += weight * z * z
+    """`add_point` on one region's row of ``moments``."""
+    add_point(moments[region], x, y, z, weight)
 
 
 @numba.njit(**_JIT)
@@ -671,33 +665,17 @@ def _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_j
 
 
 @numba.njit(**_JIT)
-def _release_misfits(points, sigma, labels, planes, distance_sigmas):  # pragma: no cover - compiled
-    """Set to 0 (in place) the labelled pixels farther than ``distance_sigmas`` sigmas from their plane."""
+def _plane_offsets(points, labels, planes):  # pragma: no cover - compiled
+    """Distance (H, W) of every labelled pixel to its segment's plane; NaN where unlabelled."""
     height, width = labels.shape
+    offsets = np.full((height, width), np.nan, np.float32)
     for i in range(height):
         for j in range(width):
             label = labels[i, j]
-            if label <= 0:
-                continue
-            offset = planes[label, 0] * points[i, j, 0] + planes[label, 1] * points[i, j, 1] + planes[label, 2] * points[i, j, 2] + planes[label, 3]
-            if not (abs(offset) <= distance_sigmas * sigma[i, j]):
-                labels[i, j] = 0
-
-
-@numba.njit(**_JIT)
-def _trim_labels(points, labels, planes, limits):  # pragma: no cover - compiled
-    """Labels with the pixels farther than ``limits[label]`` from their segment's plane set to 0."""
-    height, width = labels.shape
-    kept = labels.copy()
-    for i in range(height):
-        for j in range(width):
-            label = labels[i, j]
-            if label <= 0:
-                continue
-            offset = planes[label, 0] * points[i, j, 0] + planes[label, 1] * points[i, j, 1] + planes[label, 2] * points[i, j, 2] + planes[label, 3]
-            if not (abs(offset) <= limits[label]):
-                kept[i, j] = 0
-    return kept
+            if label > 0:
+                offsets[i, j] = abs(planes[label, 0] * points[i, j, 0] + planes[label, 1] * points[i, j, 1]
+                                    + planes[label, 2] * points[i, j, 2] + planes[label, 3])
+    return offsets
 
 
 @numba.njit(**_JIT)
