@@ -393,19 +393,15 @@ def _interior_moments(points: np.ndarray, labels: np.ndarray, moments: np.ndarra
     kernel = np.ones((2 * _INTERIOR_MARGIN + 1,) * 2, np.uint8)
     low = cv2.erode(as_float, kernel, borderType=cv2.BORDER_REPLICATE)
     high = cv2.dilate(as_float, kernel, borderType=cv2.BORDER_REPLICATE)
-    interior = np.where((low == high) & (labels > 0), labels, 0).astype(np.int32)
-    fit = _label_moments(points, interior, len(moments))
-    too_small = fit[:, 0] < np.maximum(_MIN_INTERIOR, _MIN_INTERIOR_FRACTION * moments[:, 0])
-    fit[too_small] = moments[too_small]
+    fit = _interior_kernel(points, labels, low, high, len(moments))
     # Segments with too small an interior are fitted whole.
-    interior = np.where(too_small[labels], labels, interior).astype(np.int32)
+    whole = fit[:, 0] < np.maximum(_MIN_INTERIOR, _MIN_INTERIOR_FRACTION * moments[:, 0])
+    fit[whole] = moments[whole]
     # One trimming pass: points more than _TRIM_RMS residual RMS off the plane (a rounded crease,
     # a stray pixel) leave the fit.
     planes, rms = planes_from_moments(fit)
-    interior = interior.astype(np.int32)
     limits = _TRIM_RMS * np.nan_to_num(rms, nan=np.inf)
-    trimmed = np.where(_plane_offsets(points, interior, planes) <= limits[interior], interior, 0).astype(np.int32)
-    refit = _label_moments(points, trimmed, len(moments))
+    refit = _trimmed_kernel(points, labels, low, high, whole, planes, limits, len(moments))
     keep = refit[:, 0] >= np.maximum(3, 0.5 * fit[:, 0])
     fit[keep] = refit[keep]
     return fit
@@ -676,6 +672,36 @@ def _plane_offsets(points, labels, planes):  # pragma: no cover - compiled
                 offsets[i, j] = abs(planes[label, 0] * points[i, j, 0] + planes[label, 1] * points[i, j, 1]
                                     + planes[label, 2] * points[i, j, 2] + planes[label, 3])
     return offsets
+
+
+@numba.njit(**_JIT)
+def _interior_kernel(points, labels, low, high, n_labels):  # pragma: no cover - compiled
+    """Moments of each label's interior pixels (its label is the minimum and maximum of the window)."""
+    height, width = labels.shape
+    moments = np.zeros((n_labels, 10))
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label > 0 and low[i, j] == high[i, j]:
+                add_point(moments[label], points[i, j, 0], points[i, j, 1], points[i, j, 2], 1.0)
+    return moments
+
+
+@numba.njit(**_JIT)
+def _trimmed_kernel(points, labels, low, high, whole, planes, limits, n_labels):  # pragma: no cover - compiled
+    """Moments of the fitted pixels (interior, or all of a ``whole`` label) within ``limits`` of their plane."""
+    height, width = labels.shape
+    moments = np.zeros((n_labels, 10))
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label <= 0 or not (whole[label] or low[i, j] == high[i, j]):
+                continue
+            x, y, z = points[i, j, 0], points[i, j, 1], points[i, j, 2]
+            offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
+            if offset <= limits[label]:
+                add_point(moments[label], x, y, z, 1.0)
+    return moments
 
 
 @numba.njit(**_JIT)
