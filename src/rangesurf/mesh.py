@@ -1,0 +1,474 @@
+"""Triangulated surfaces of segments (thesis Sections 2.3 and 3.1).
+
+A range frame is already a grid, so a segment's mesh comes almost free:
+every 2x2 cell whose four corners belong to the segment gives two triangles
+(split along the shorter diagonal), a cell with three gives one. Triangles
+across a depth step are dropped, as the thesis drops "triangles with edge
+lengths higher than a previously established threshold" -- here relative to
+the range, since the spacing of grid samples grows with it: an edge longer
+than ``max_edge_pixels`` pixel footprints, or a triangle seen almost edge-on
+(its normal more than ``max_view_angle`` from the viewing ray), is a step,
+not a surface.
+
+Irregular vertex sets (merged or decimated surfaces) are triangulated by
+Delaunay in the segment's plane (the thesis's Section 3.1 also triangulates
+in 2-D, disregarding depth), with triangles longer than a limit dropped so
+that concave outlines and holes survive.
+
+`boundary_loops` finds the outline and the holes of a mesh: the edges used
+by one triangle only, chained into closed loops.
+
+References
+----------
+.. [1] The reference thesis, Sections 2.3 and 3.1 (``shared/reference/thesis.md``).
+.. [2] G. Turk and M. Levoy, "Zippered polygon meshes from range images",
+   SIGGRAPH 1994 (triangulating range grids, dropping step triangles).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+import numba
+import numpy as np
+from numpy.typing import ArrayLike
+from scipy.spatial import Delaunay, QhullError
+
+from rangesurf._checks import check_point_grid
+from rangesurf.segment import Segmentation
+
+__all__ = ["Surface", "triangulate_segments", "triangulate_in_plane", "boundary_loops", "UNCERTAINTY_LEVELS"]
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+UNCERTAINTY_LEVELS = ("UL1", "UL2", "UL3", "UL4")
+
+
+@dataclass
+class Surface:
+    """One triangulated patch from one segment (DESIGN: data model).
+
+    Parameters
+    ----------
+    vertices : (N, 3) float32
+        Metres, in the frame the points were given in (the sensor frame of
+        the source frame, until registration moves it).
+    faces : (M, 3) int32
+        Vertex indices, counter-clockwise seen from the side the normals
+        face (the sensor).
+    normals : (N, 3) float32
+        Unit vertex normals.
+    pixels : (N, 2) int32
+        ``(row, column)`` of each vertex's grid origin; -1 for vertices that
+        come from no pixel (merged or interpolated ones).
+    plane : (4,) float64
+        ``(nx, ny, nz, d)`` of the segment's plane (``n . p + d = 0``), NaN
+        where the surface is not planar.
+    segment : int
+        Label of the segment in its frame's `Segmentation` (0 if none).
+    uncertainty : dict of str -> (N,) float32
+        Per-vertex uncertainty in metres along the normal, keyed by level
+        (``"UL1"`` sensor, ``"UL2"`` patch fit, ``"UL3"`` registration and
+        merging, ``"UL4"`` level of detail).
+    lod_order : (N,) int32
+        Vertex indices, most important first (`rangesurf.lod`); the identity
+        until a progressive order is built.
+    lod_error : (N,) float32
+        Geometric error (metres) introduced when ``lod_order[k]`` is
+        removed; 0 until computed.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    normals: np.ndarray
+    pixels: np.ndarray
+    plane: np.ndarray = field(default_factory=lambda: np.full(4, np.nan))
+    segment: int = 0
+    uncertainty: dict[str, np.ndarray] = field(default_factory=dict)
+    lod_order: np.ndarray | None = None
+    lod_error: np.ndarray | None = None
+
+    def __post_init__(self) -> None:
+        self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float32).reshape(-1, 3)
+        count = len(self.vertices)
+        self.faces = np.ascontiguousarray(self.faces, dtype=np.int32).reshape(-1, 3)
+        self.normals = np.ascontiguousarray(self.normals, dtype=np.float32).reshape(-1, 3)
+        self.pixels = np.ascontiguousarray(self.pixels, dtype=np.int32).reshape(-1, 2)
+        self.plane = np.asarray(self.plane, dtype=np.float64).reshape(4)
+        if len(self.normals) != count or len(self.pixels) != count:
+            raise ValueError(
+                f"surface arrays disagree: {count} vertices, {len(self.normals)} normals, {len(self.pixels)} pixels"
+            )
+        if self.faces.size and (self.faces.min() < 0 or self.faces.max() >= count):
+            raise ValueError(f"faces index vertices 0..{count - 1}, got {self.faces.min()}..{self.faces.max()}")
+        for level, values in self.uncertainty.items():
+            if level not in UNCERTAINTY_LEVELS:
+                raise ValueError(f"uncertainty levels are {UNCERTAINTY_LEVELS}, got {level!r}")
+            values = np.asarray(values, dtype=np.float32)
+            if values.shape != (count,):
+                raise ValueError(f"uncertainty {level} must have one value per vertex ({count}), got shape {values.shape}")
+            self.uncertainty[level] = values
+        self.lod_order = np.arange(count, dtype=np.int32) if self.lod_order is None else np.asarray(self.lod_order, np.int32)
+        self.lod_error = np.zeros(count, np.float32) if self.lod_error is None else np.asarray(self.lod_error, np.float32)
+        if self.lod_order.shape != (count,) or self.lod_error.shape != (count,):
+            raise ValueError(f"lod_order and lod_error need one entry per vertex ({count})")
+
+    @property
+    def n_vertices(self) -> int:
+        return len(self.vertices)
+
+    @property
+    def n_faces(self) -> int:
+        return len(self.faces)
+
+    def area(self) -> float:
+        """Total triangle area in square metres."""
+        if not self.n_faces:
+            return 0.0
+        corners = self.vertices[self.faces].astype(np.float64)
+        return float(0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum())
+
+
+# --------------------------------------------------------------------------
+# Grid triangulation.
+# --------------------------------------------------------------------------
+
+
+def triangulate_segments(
+    points: ArrayLike,
+    segmentation: Segmentation,
+    *,
+    max_edge_pixels: float = 4.0,
+    max_view_angle: float = 85.0,
+    min_faces: int = 1,
+) -> list[Surface]:
+    """One grid-triangulated `Surface` per segment of an organized frame.
+
+    Parameters
+    ----------
+    points : (H, W, 3) float array
+        Sensor-frame points (metres), NaN where invalid; the points the
+        segmentation was made from.
+    segmentation : Segmentation
+        Labels and planes (`rangesurf.segment`).
+    max_edge_pixels : float
+        Longest triangle edge, in pixel footprints at the range of its
+        nearer end (range times the angle between neighbouring rays): a
+        longer edge spans a depth step.
+    max_view_angle : float
+        Degrees; triangles whose normal is farther than this from the line
+        of sight are dropped (a surface seen edge-on is a step).
+    min_faces : int
+        Segments with fewer triangles give no surface.
+
+    Returns
+    -------
+    list of Surface
+        In label order; each surface's vertices are its segment's pixels that
+        belong to a kept triangle, with the segment's plane normal (facing
+        the sensor) as vertex normal where the segment is planar.
+
+    Examples
+    --------
+    A 4x5 patch of a wall at 2 m: 20 vertices, 2 x 3 x 4 = 24 triangles.
+
+    >>> import numpy as np
+    >>> from rangesurf.segment import Segmentation
+    >>> rows, cols = np.mgrid[0:4, 0:5].astype(np.float32)
+    >>> points = np.dstack([cols * 0.01, rows * 0.01, np.full(rows.shape, 2.0, np.float32)])
+    >>> labels = np.ones((4, 5), np.int32)
+    >>> planes = np.array([[np.nan] * 4, [0.0, 0.0, -1.0, 2.0]])
+    >>> segments = Segmentation(labels, planes, np.array([np.nan, 0.0]), np.array([0, 20]))
+    >>> surface, = triangulate_segments(points, segments)
+    >>> surface.n_vertices, surface.n_faces, round(surface.area(), 6)
+    (20, 24, 0.0012)
+    """
+    points = check_point_grid(points)
+    labels = np.asarray(segmentation.labels)
+    if labels.shape != points.shape[:2]:
+        raise ValueError(f"segmentation labels {labels.shape} do not match the points grid {points.shape[:2]}")
+    if not (isinstance(max_edge_pixels, (int, float)) and max_edge_pixels > 0):
+        raise ValueError(f"max_edge_pixels must be > 0, got {max_edge_pixels!r}")
+    if not (isinstance(max_view_angle, (int, float)) and 0 < max_view_angle <= 90):
+        raise ValueError(f"max_view_angle must be in (0, 90] degrees, got {max_view_angle!r}")
+    pitch = _pixel_pitch(points)
+    faces, face_labels = _grid_faces(
+        points, labels.astype(np.int32), float(max_edge_pixels * pitch), math.cos(math.radians(max_view_angle))
+    )
+    surfaces = []
+    order = np.argsort(face_labels, kind="stable")
+    faces, face_labels = faces[order], face_labels[order]
+    starts = np.searchsorted(face_labels, np.arange(1, segmentation.n_segments + 2))
+    height, width = labels.shape
+    for label in range(1, segmentation.n_segments + 1):
+        own = faces[starts[label - 1] : starts[label]]
+        if len(own) < min_faces or len(own) == 0:
+            continue
+        used, local = np.unique(own, return_inverse=True)
+        rows, cols = np.divmod(used, width)
+        vertices = points[rows, cols]
+        plane = np.asarray(segmentation.planes[label], dtype=np.float64)
+        if np.isfinite(plane).all():
+            normals = np.broadcast_to(plane[:3].astype(np.float32), vertices.shape)
+        else:
+            normals = _vertex_normals(vertices, local.reshape(-1, 3))
+        uncertainty = {}
+        if np.isfinite(segmentation.residuals[label]):
+            uncertainty["UL2"] = np.full(len(used), segmentation.residuals[label], np.float32)
+        surfaces.append(
+            Surface(
+                vertices=vertices, faces=local.reshape(-1, 3), normals=normals,
+                pixels=np.column_stack([rows, cols]), plane=plane, segment=label, uncertainty=uncertainty,
+            )
+        )
+    return surfaces
+
+
+def _pixel_pitch(points: np.ndarray) -> float:
+    """Median angle (radians) between horizontally neighbouring rays."""
+    both = np.isfinite(points[:, 1:, 0]) & np.isfinite(points[:, :-1, 0])
+    if not both.any():
+        return 1e-3
+    a = points[:, 1:][both].astype(np.float64)
+    b = points[:, :-1][both].astype(np.float64)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    return float(np.median(np.linalg.norm(a - b, axis=1))) or 1e-3
+
+
+@numba.njit(**_JIT)
+def _grid_faces(points, labels, edge_per_metre, cos_view):  # pragma: no cover - compiled
+    """Triangles (flat pixel indices) of every 2x2 cell, with the label they belong to.
+
+    Four corners of one label: two triangles along the shorter diagonal.
+    Three of one label: the triangle of those three. Corners run
+    counter-clockwise in the image (top-left, bottom-left, bottom-right,
+    top-right), so that with x right and y down every triangle winds
+    counter-clockwise seen from the sensor.
+    """
+    height, width = labels.shape
+    faces = np.empty((2 * height * width, 3), np.int64)
+    face_labels = np.empty(2 * height * width, np.int32)
+    count = 0
+    corner = np.empty(4, np.int64)
+    value = np.empty(4, np.int32)
+    for i in range(height - 1):
+        for j in range(width - 1):
+            corner[0] = i * width + j
+            corner[1] = (i + 1) * width + j
+            corner[2] = (i + 1) * width + j + 1
+            corner[3] = i * width + j + 1
+            value[0] = labels[i, j]
+            value[1] = labels[i + 1, j]
+            value[2] = labels[i + 1, j + 1]
+            value[3] = labels[i, j + 1]
+            if value[0] > 0 and value[0] == value[1] == value[2] == value[3]:
+                if _squared_distance(points, corner[0], corner[2], width) <= _squared_distance(points, corner[1], corner[3], width):
+                    count = _emit(points, faces, face_labels, count, corner[0], corner[1], corner[2], value[0], width, edge_per_metre, cos_view)
+                    count = _emit(points, faces, face_labels, count, corner[0], corner[2], corner[3], value[0], width, edge_per_metre, cos_view)
+                else:
+                    count = _emit(points, faces, face_labels, count, corner[0], corner[1], corner[3], value[0], width, edge_per_metre, cos_view)
+                    count = _emit(points, faces, face_labels, count, corner[1], corner[2], corner[3], value[0], width, edge_per_metre, cos_view)
+                continue
+            for missing in range(4):
+                a = (missing + 1) % 4
+                b = (missing + 2) % 4
+                c = (missing + 3) % 4
+                if value[a] > 0 and value[a] == value[b] == value[c]:
+                    count = _emit(points, faces, face_labels, count, corner[a], corner[b], corner[c], value[a], width, edge_per_metre, cos_view)
+                    break
+    return faces[:count], face_labels[:count]
+
+
+@numba.njit(**_JIT, inline="always")
+def _squared_distance(points, a, b, width):  # pragma: no cover - compiled
+    ai, aj = a // width, a % width
+    bi, bj = b // width, b % width
+    dx = points[ai, aj, 0] - points[bi, bj, 0]
+    dy = points[ai, aj, 1] - points[bi, bj, 1]
+    dz = points[ai, aj, 2] - points[bi, bj, 2]
+    return dx * dx + dy * dy + dz * dz
+
+
+@numba.njit(**_JIT)
+def _emit(points, faces, face_labels, count, a, b, c, label, width, edge_per_metre, cos_view):  # pragma: no cover - compiled
+    """Append triangle (a, b, c) unless it spans a step; returns the new count."""
+    ai, aj = a // width, a % width
+    bi, bj = b // width, b % width
+    ci, cj = c // width, c % width
+    ax, ay, az = points[ai, aj, 0], points[ai, aj, 1], points[ai, aj, 2]
+    bx, by, bz = points[bi, bj, 0], points[bi, bj, 1], points[bi, bj, 2]
+    cx, cy, cz = points[ci, cj, 0], points[ci, cj, 1], points[ci, cj, 2]
+    ra = math.sqrt(ax * ax + ay * ay + az * az)
+    rb = math.sqrt(bx * bx + by * by + bz * bz)
+    rc = math.sqrt(cx * cx + cy * cy + cz * cz)
+    if not (ra > 0 and rb > 0 and rc > 0):
+        return count
+    for (px, py, pz, rp, qx, qy, qz, rq) in ((ax, ay, az, ra, bx, by, bz, rb), (bx, by, bz, rb, cx, cy, cz, rc),
+                                             (cx, cy, cz, rc, ax, ay, az, ra)):
+        length = math.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
+        if length > edge_per_metre * min(rp, rq):
+            return count
+    nx = (by - ay) * (cz - az) - (bz - az) * (cy - ay)
+    ny = (bz - az) * (cx - ax) - (bx - ax) * (cz - az)
+    nz = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
+    norm = math.sqrt(nx * nx + ny * ny + nz * nz)
+    if norm == 0.0:
+        return count
+    mx = (ax + bx + cx) / 3.0
+    my = (ay + by + cy) / 3.0
+    mz = (az + bz + cz) / 3.0
+    if abs(nx * mx + ny * my + nz * mz) < cos_view * norm * math.sqrt(mx * mx + my * my + mz * mz):
+        return count
+    faces[count, 0] = a
+    faces[count, 1] = b
+    faces[count, 2] = c
+    face_labels[count] = label
+    return count + 1
+
+
+def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Area-weighted vertex normals, turned to face the origin (the sensor)."""
+    corners = vertices[faces].astype(np.float64)
+    face_normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    normals = np.zeros((len(vertices), 3))
+    for k in range(3):
+        np.add.at(normals, faces[:, k], face_normals)
+    length = np.linalg.norm(normals, axis=1, keepdims=True)
+    normals = np.divide(normals, length, out=np.full_like(normals, np.nan), where=length > 0)
+    flip = np.einsum("ij,ij->i", normals, vertices) > 0
+    normals[flip] *= -1
+    return normals.astype(np.float32)
+
+
+# --------------------------------------------------------------------------
+# Irregular vertex sets.
+# --------------------------------------------------------------------------
+
+
+def triangulate_in_plane(vertices: ArrayLike, plane: ArrayLike, *, max_edge: float | None = None) -> np.ndarray:
+    """Delaunay triangles of points on (or near) a plane, computed in the plane's 2-D coordinates.
+
+    Parameters
+    ----------
+    vertices : (N, 3) float array
+        Points (metres).
+    plane : (4,) float array
+        ``(nx, ny, nz, d)``; only the normal is used (the 2-D frame).
+    max_edge : float, optional
+        Triangles with an edge longer than this (metres) are dropped, so
+        that concave outlines and holes stay open. Default: 3 times the
+        median nearest-neighbour spacing.
+
+    Returns
+    -------
+    (M, 3) int32
+        Vertex indices, counter-clockwise seen from the side the normal
+        points to. Empty for fewer than 3 distinct points or collinear ones.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> square = np.array([[0, 0, 2], [1, 0, 2], [1, 1, 2], [0, 1, 2]], float)
+    >>> len(triangulate_in_plane(square, [0, 0, -1, 2]))
+    2
+    """
+    vertices = np.asarray(vertices, dtype=np.float64)
+    if vertices.ndim != 2 or vertices.shape[1] != 3:
+        raise ValueError(f"vertices must be (N, 3), got shape {vertices.shape}")
+    if not np.isfinite(vertices).all():
+        raise ValueError("vertices must be finite")
+    normal = np.asarray(plane, dtype=np.float64).reshape(-1)[:3]
+    if normal.shape != (3,) or not np.isfinite(normal).all() or np.linalg.norm(normal) == 0:
+        raise ValueError(f"plane must start with a finite, non-zero normal, got {plane!r}")
+    normal = normal / np.linalg.norm(normal)
+    empty = np.zeros((0, 3), np.int32)
+    if len(vertices) < 3:
+        return empty
+    # An orthonormal frame (u, v) of the plane; (u, v, normal) right-handed.
+    helper = np.eye(3)[np.argmin(np.abs(normal))]
+    u = np.cross(helper, normal)
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    flat = np.column_stack([vertices @ u, vertices @ v])
+    try:
+        triangles = Delaunay(flat).simplices
+    except QhullError:
+        return empty  # collinear or duplicate-only input: no area to triangulate
+    corners = flat[triangles]
+    # Counter-clockwise in (u, v) is counter-clockwise seen from +normal.
+    signed = (corners[:, 1, 0] - corners[:, 0, 0]) * (corners[:, 2, 1] - corners[:, 0, 1]) - (
+        corners[:, 1, 1] - corners[:, 0, 1]
+    ) * (corners[:, 2, 0] - corners[:, 0, 0])
+    triangles = np.where((signed < 0)[:, None], triangles[:, [0, 2, 1]], triangles)
+    triangles = triangles[np.abs(signed) > 1e-12 * max(np.ptp(flat), 1e-9) ** 2]
+    if max_edge is None:
+        spacing = _nearest_spacing(flat)
+        max_edge = 3.0 * spacing if spacing > 0 else np.inf
+    edges = np.linalg.norm(vertices[triangles] - vertices[np.roll(triangles, 1, axis=1)], axis=2)
+    return triangles[(edges <= max_edge).all(axis=1)].astype(np.int32)
+
+
+def _nearest_spacing(flat: np.ndarray) -> float:
+    from scipy.spatial import cKDTree
+
+    distances, _ = cKDTree(flat).query(flat, k=2)
+    positive = distances[:, 1][distances[:, 1] > 0]
+    return float(np.median(positive)) if positive.size else 0.0
+
+
+# --------------------------------------------------------------------------
+# Outlines and holes.
+# --------------------------------------------------------------------------
+
+
+def boundary_loops(faces: ArrayLike) -> list[np.ndarray]:
+    """Closed loops of boundary edges (edges of exactly one triangle), longest first.
+
+    For a mesh of a patch, the first loop is usually its outline and the
+    others its holes (`Surface` vertices in the loop's order). A vertex
+    where two loops touch (a pinch) is visited once per loop.
+
+    Parameters
+    ----------
+    faces : (M, 3) int array
+
+    Returns
+    -------
+    list of (K,) int32 arrays
+        Vertex indices of each loop, in order, following the faces' winding.
+
+    Examples
+    --------
+    >>> boundary_loops([[0, 1, 2], [0, 2, 3]])[0].tolist()
+    [0, 1, 2, 3]
+    """
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    if faces.size == 0:
+        return []
+    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    # A directed edge is on the boundary when its reverse is not used by any face.
+    forward = {(int(a), int(b)) for a, b in directed}
+    boundary = [(a, b) for a, b in forward if (b, a) not in forward]
+    successors: dict[int, list[int]] = {}
+    for a, b in boundary:
+        successors.setdefault(a, []).append(b)
+    loops = []
+    while successors:
+        start = min(successors)
+        loop = [start]
+        current = start
+        while True:
+            following = successors[current]
+            nxt = following.pop()
+            if not following:
+                del successors[current]
+            if nxt == start:
+                break
+            loop.append(nxt)
+            current = nxt
+            if current not in successors:
+                break
+        loops.append(np.asarray(loop, dtype=np.int32))
+    loops.sort(key=len, reverse=True)
+    return loops
+
