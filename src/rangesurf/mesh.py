@@ -35,6 +35,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial import Delaunay, QhullError
 
 from rangesurf._checks import check_point_grid
+from rangesurf._grid import ranges
 from rangesurf.segment import Segmentation
 
 __all__ = ["Surface", "triangulate_segments", "triangulate_in_plane", "boundary_loops", "UNCERTAINTY_LEVELS"]
@@ -191,32 +192,32 @@ def triangulate_segments(
     if not (isinstance(max_view_angle, (int, float)) and 0 < max_view_angle <= 90):
         raise ValueError(f"max_view_angle must be in (0, 90] degrees, got {max_view_angle!r}")
     pitch = _pixel_pitch(points)
+    distance, _ = ranges(points)
     faces, face_labels = _grid_faces(
-        points, labels.astype(np.int32), float(max_edge_pixels * pitch), math.cos(math.radians(max_view_angle))
+        points, distance, labels.astype(np.int32), float(max_edge_pixels * pitch), math.cos(math.radians(max_view_angle))
     )
+    n_labels = segmentation.n_segments + 1
+    vertex_pixels, vertex_starts, local_faces, face_starts = _group_by_label(faces, face_labels, labels.shape[1], n_labels)
     surfaces = []
-    order = np.argsort(face_labels, kind="stable")
-    faces, face_labels = faces[order], face_labels[order]
-    starts = np.searchsorted(face_labels, np.arange(1, segmentation.n_segments + 2))
-    height, width = labels.shape
-    for label in range(1, segmentation.n_segments + 1):
-        own = faces[starts[label - 1] : starts[label]]
+    width = labels.shape[1]
+    for label in range(1, n_labels):
+        own = local_faces[face_starts[label] : face_starts[label + 1]]
         if len(own) < min_faces or len(own) == 0:
             continue
-        used, local = np.unique(own, return_inverse=True)
+        used = vertex_pixels[vertex_starts[label] : vertex_starts[label + 1]]
         rows, cols = np.divmod(used, width)
         vertices = points[rows, cols]
         plane = np.asarray(segmentation.planes[label], dtype=np.float64)
         if np.isfinite(plane).all():
             normals = np.broadcast_to(plane[:3].astype(np.float32), vertices.shape)
         else:
-            normals = _vertex_normals(vertices, local.reshape(-1, 3))
+            normals = _vertex_normals(vertices, own)
         uncertainty = {}
         if np.isfinite(segmentation.residuals[label]):
             uncertainty["UL2"] = np.full(len(used), segmentation.residuals[label], np.float32)
         surfaces.append(
             Surface(
-                vertices=vertices, faces=local.reshape(-1, 3), normals=normals,
+                vertices=vertices, faces=own, normals=normals,
                 pixels=np.column_stack([rows, cols]), plane=plane, segment=label, uncertainty=uncertainty,
             )
         )
@@ -224,7 +225,8 @@ def triangulate_segments(
 
 
 def _pixel_pitch(points: np.ndarray) -> float:
-    """Median angle (radians) between horizontally neighbouring rays."""
+    """Median angle (radians) between horizontally neighbouring rays (from every 8th row: a median needs no more)."""
+    points = points[::8]
     both = np.isfinite(points[:, 1:, 0]) & np.isfinite(points[:, :-1, 0])
     if not both.any():
         return 1e-3
@@ -236,7 +238,7 @@ def _pixel_pitch(points: np.ndarray) -> float:
 
 
 @numba.njit(**_JIT)
-def _grid_faces(points, labels, edge_per_metre, cos_view):  # pragma: no cover - compiled
+def _grid_faces(points, distance, labels, edge_per_metre, cos_view):  # pragma: no cover - compiled
     """Triangles (flat pixel indices) of every 2x2 cell, with the label they belong to.
 
     Four corners of one label: two triangles along the shorter diagonal.
@@ -246,84 +248,136 @@ def _grid_faces(points, labels, edge_per_metre, cos_view):  # pragma: no cover -
     counter-clockwise seen from the sensor.
     """
     height, width = labels.shape
-    faces = np.empty((2 * height * width, 3), np.int64)
+    faces = np.empty((2 * height * width, 3), np.int32)
     face_labels = np.empty(2 * height * width, np.int32)
     count = 0
-    corner = np.empty(4, np.int64)
+    ci = np.empty(4, np.int64)
+    cj = np.empty(4, np.int64)
     value = np.empty(4, np.int32)
     for i in range(height - 1):
         for j in range(width - 1):
-            corner[0] = i * width + j
-            corner[1] = (i + 1) * width + j
-            corner[2] = (i + 1) * width + j + 1
-            corner[3] = i * width + j + 1
-            value[0] = labels[i, j]
-            value[1] = labels[i + 1, j]
-            value[2] = labels[i + 1, j + 1]
-            value[3] = labels[i, j + 1]
+            ci[0], cj[0] = i, j
+            ci[1], cj[1] = i + 1, j
+            ci[2], cj[2] = i + 1, j + 1
+            ci[3], cj[3] = i, j + 1
+            for k in range(4):
+                value[k] = labels[ci[k], cj[k]]
             if value[0] > 0 and value[0] == value[1] == value[2] == value[3]:
-                if _squared_distance(points, corner[0], corner[2], width) <= _squared_distance(points, corner[1], corner[3], width):
-                    count = _emit(points, faces, face_labels, count, corner[0], corner[1], corner[2], value[0], width, edge_per_metre, cos_view)
-                    count = _emit(points, faces, face_labels, count, corner[0], corner[2], corner[3], value[0], width, edge_per_metre, cos_view)
+                if _squared_distance(points, ci[0], cj[0], ci[2], cj[2]) <= _squared_distance(points, ci[1], cj[1], ci[3], cj[3]):
+                    first, second = (0, 1, 2), (0, 2, 3)
                 else:
-                    count = _emit(points, faces, face_labels, count, corner[0], corner[1], corner[3], value[0], width, edge_per_metre, cos_view)
-                    count = _emit(points, faces, face_labels, count, corner[1], corner[2], corner[3], value[0], width, edge_per_metre, cos_view)
+                    first, second = (0, 1, 3), (1, 2, 3)
+                for a, b, c in (first, second):
+                    if _keep(points, distance, ci[a], cj[a], ci[b], cj[b], ci[c], cj[c], edge_per_metre, cos_view):
+                        faces[count, 0] = ci[a] * width + cj[a]
+                        faces[count, 1] = ci[b] * width + cj[b]
+                        faces[count, 2] = ci[c] * width + cj[c]
+                        face_labels[count] = value[0]
+                        count += 1
                 continue
             for missing in range(4):
                 a = (missing + 1) % 4
                 b = (missing + 2) % 4
                 c = (missing + 3) % 4
                 if value[a] > 0 and value[a] == value[b] == value[c]:
-                    count = _emit(points, faces, face_labels, count, corner[a], corner[b], corner[c], value[a], width, edge_per_metre, cos_view)
+                    if _keep(points, distance, ci[a], cj[a], ci[b], cj[b], ci[c], cj[c], edge_per_metre, cos_view):
+                        faces[count, 0] = ci[a] * width + cj[a]
+                        faces[count, 1] = ci[b] * width + cj[b]
+                        faces[count, 2] = ci[c] * width + cj[c]
+                        face_labels[count] = value[a]
+                        count += 1
                     break
     return faces[:count], face_labels[:count]
 
 
 @numba.njit(**_JIT, inline="always")
-def _squared_distance(points, a, b, width):  # pragma: no cover - compiled
-    ai, aj = a // width, a % width
-    bi, bj = b // width, b % width
+def _squared_distance(points, ai, aj, bi, bj):  # pragma: no cover - compiled
     dx = points[ai, aj, 0] - points[bi, bj, 0]
     dy = points[ai, aj, 1] - points[bi, bj, 1]
     dz = points[ai, aj, 2] - points[bi, bj, 2]
     return dx * dx + dy * dy + dz * dz
 
 
-@numba.njit(**_JIT)
-def _emit(points, faces, face_labels, count, a, b, c, label, width, edge_per_metre, cos_view):  # pragma: no cover - compiled
-    """Append triangle (a, b, c) unless it spans a step; returns the new count."""
-    ai, aj = a // width, a % width
-    bi, bj = b // width, b % width
-    ci, cj = c // width, c % width
+@numba.njit(**_JIT, inline="always")
+def _keep(points, distance, ai, aj, bi, bj, ci, cj, edge_per_metre, cos_view):  # pragma: no cover - compiled
+    """Whether triangle (a, b, c) is a surface: no edge over the step limit, not seen edge-on."""
     ax, ay, az = points[ai, aj, 0], points[ai, aj, 1], points[ai, aj, 2]
     bx, by, bz = points[bi, bj, 0], points[bi, bj, 1], points[bi, bj, 2]
     cx, cy, cz = points[ci, cj, 0], points[ci, cj, 1], points[ci, cj, 2]
-    ra = math.sqrt(ax * ax + ay * ay + az * az)
-    rb = math.sqrt(bx * bx + by * by + bz * bz)
-    rc = math.sqrt(cx * cx + cy * cy + cz * cz)
+    ra = distance[ai, aj]
+    rb = distance[bi, bj]
+    rc = distance[ci, cj]
     if not (ra > 0 and rb > 0 and rc > 0):
-        return count
-    for (px, py, pz, rp, qx, qy, qz, rq) in ((ax, ay, az, ra, bx, by, bz, rb), (bx, by, bz, rb, cx, cy, cz, rc),
-                                             (cx, cy, cz, rc, ax, ay, az, ra)):
-        length = math.sqrt((px - qx) ** 2 + (py - qy) ** 2 + (pz - qz) ** 2)
-        if length > edge_per_metre * min(rp, rq):
-            return count
+        return False
+    limit_ab = edge_per_metre * min(ra, rb)
+    limit_bc = edge_per_metre * min(rb, rc)
+    limit_ca = edge_per_metre * min(rc, ra)
+    if (ax - bx) ** 2 + (ay - by) ** 2 + (az - bz) ** 2 > limit_ab * limit_ab:
+        return False
+    if (bx - cx) ** 2 + (by - cy) ** 2 + (bz - cz) ** 2 > limit_bc * limit_bc:
+        return False
+    if (cx - ax) ** 2 + (cy - ay) ** 2 + (cz - az) ** 2 > limit_ca * limit_ca:
+        return False
     nx = (by - ay) * (cz - az) - (bz - az) * (cy - ay)
     ny = (bz - az) * (cx - ax) - (bx - ax) * (cz - az)
     nz = (bx - ax) * (cy - ay) - (by - ay) * (cx - ax)
     norm = math.sqrt(nx * nx + ny * ny + nz * nz)
     if norm == 0.0:
-        return count
+        return False
     mx = (ax + bx + cx) / 3.0
     my = (ay + by + cy) / 3.0
     mz = (az + bz + cz) / 3.0
-    if abs(nx * mx + ny * my + nz * mz) < cos_view * norm * math.sqrt(mx * mx + my * my + mz * mz):
-        return count
-    faces[count, 0] = a
-    faces[count, 1] = b
-    faces[count, 2] = c
-    face_labels[count] = label
-    return count + 1
+    return abs(nx * mx + ny * my + nz * mz) >= cos_view * norm * math.sqrt(mx * mx + my * my + mz * mz)
+
+
+@numba.njit(**_JIT)
+def _group_by_label(faces, face_labels, width, n_labels):  # pragma: no cover - compiled
+    """Faces and their vertices grouped by label (counting sort), with faces renumbered per label.
+
+    Returns the flat pixel index of every used vertex, grouped by label and
+    in raster order within a label; where each label's vertices start; the
+    faces with local vertex indices, grouped by label; and where each
+    label's faces start.
+    """
+    n_faces = faces.shape[0]
+    face_starts = np.zeros(n_labels + 1, np.int64)
+    for f in range(n_faces):
+        face_starts[face_labels[f] + 1] += 1
+    for label in range(n_labels):
+        face_starts[label + 1] += face_starts[label]
+    # Mark used pixels; a pixel belongs to one label only.
+    n_pixels = 0
+    for f in range(n_faces):
+        for k in range(3):
+            n_pixels = max(n_pixels, faces[f, k] + 1)
+    owner = np.full(n_pixels, -1, np.int32)
+    for f in range(n_faces):
+        for k in range(3):
+            owner[faces[f, k]] = face_labels[f]
+    vertex_starts = np.zeros(n_labels + 1, np.int64)
+    for pixel in range(n_pixels):
+        if owner[pixel] >= 0:
+            vertex_starts[owner[pixel] + 1] += 1
+    for label in range(n_labels):
+        vertex_starts[label + 1] += vertex_starts[label]
+    fill = vertex_starts[:-1].copy()
+    vertex_pixels = np.empty(vertex_starts[n_labels], np.int64)
+    local = np.full(n_pixels, -1, np.int64)
+    for pixel in range(n_pixels):
+        label = owner[pixel]
+        if label >= 0:
+            local[pixel] = fill[label] - vertex_starts[label]
+            vertex_pixels[fill[label]] = pixel
+            fill[label] += 1
+    local_faces = np.empty((n_faces, 3), np.int32)
+    placed = face_starts[:-1].copy()
+    for f in range(n_faces):
+        label = face_labels[f]
+        row = placed[label]
+        for k in range(3):
+            local_faces[row, k] = local[faces[f, k]]
+        placed[label] += 1
+    return vertex_pixels, vertex_starts, local_faces, face_starts
 
 
 def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
