@@ -480,7 +480,7 @@ def _box_normals(table, points, valid, radius, distance, sigma, depth_jump, gate
     return normals
 
 
-@numba.njit(**_JIT)
+@numba.njit(**_JIT, inline="always")
 def _gated_sums(points, valid, distance, sigma, depth_jump, i, j, radius, sums):  # pragma: no cover - compiled
     """Moments of the neighbours on the centre's side of a depth jump (range within the jump threshold)."""
     height, width = valid.shape
