@@ -501,10 +501,12 @@ def boundary_loops(faces: ArrayLike) -> list[np.ndarray]:
         return []
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     # A directed edge is on the boundary when its reverse is not used by any face.
-    forward = {(int(a), int(b)) for a, b in directed}
-    boundary = [(a, b) for a, b in forward if (b, a) not in forward]
+    base = int(faces.max()) + 1
+    codes = np.unique(directed[:, 0] * base + directed[:, 1])
+    reverse = (codes % base) * base + codes // base
+    boundary = codes[~np.isin(reverse, codes, assume_unique=True)]
     successors: dict[int, list[int]] = {}
-    for a, b in boundary:
+    for a, b in zip((boundary // base).tolist(), (boundary % base).tolist()):
         successors.setdefault(a, []).append(b)
     loops = []
     while successors:

@@ -1,0 +1,522 @@
+"""Levels of detail: vertex importance and a progressive order (thesis Section 3.2).
+
+The thesis orders a surface's vertices by how much each one tells: a vertex
+whose height over the surface's plane its neighbours predict well can go
+first. Its height is estimated from its four nearest neighbours by
+inverse-distance weighting (Shepard's method, thesis Eq. 3.10), and the
+importance is the difference ``|h - h_estimate|``. Vertices are removed
+least important first; after each removal the vertices around it are
+re-evaluated against the neighbours that remain, and take over the removed
+vertex's error (so that a region whose detail was removed becomes harder to
+thin further). Outline vertices also count the distance to the segment that
+joins their two outline neighbours, so outlines survive the coarse levels.
+
+The removal order, reversed, is the progressive order (most important
+first) with the error each removal introduced; `build_levels` triangulates a
+ladder of vertex counts (halving) once, and `Surface.at_level`-style
+selection (`select_level`) is then a lookup, cheap enough for every rendered
+frame. `screen_space_level` picks the finest level whose vertices, seen
+from a camera, are at least one pixel apart (the thesis's future work: no
+two vertices of a mesh in one pixel); `distance_level` is the thesis's
+linear rule.
+
+References
+----------
+.. [1] The reference thesis, Section 3.2 and Eq. 3.10 (``shared/reference/thesis.md``).
+.. [2] D. Shepard, "A two-dimensional interpolation function for
+   irregularly-spaced data", ACM National Conference, 1968.
+.. [3] H. Hoppe, "Progressive meshes", SIGGRAPH 1996.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+from scipy.spatial import cKDTree
+
+from rangesurf.mesh import Surface, boundary_loops, triangulate_in_plane
+
+__all__ = ["Level", "progressive_order", "build_levels", "select_level", "screen_space_level", "distance_level"]
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+# Neighbours that estimate a vertex's height (Shepard over the four nearest, as the thesis).
+_NEIGHBOURS = 4
+# Vertices re-evaluated around a removed one.
+_AFFECTED = 4
+
+
+@dataclass(frozen=True)
+class Level:
+    """One precomputed level of detail of a surface.
+
+    Parameters
+    ----------
+    count : int
+        Vertices kept: the first ``count`` of the surface's ``lod_order``.
+    faces : (M, 3) int32
+        Triangles over those vertices (indices into ``lod_order[:count]``).
+    error : float
+        Largest error (metres) of a vertex removed to reach this level.
+    spacing : float
+        Median distance (metres) between neighbouring kept vertices.
+    vertex_error : (count,) float32
+        Per kept vertex, the largest error of the removed vertices nearest
+        to it: the level-of-detail uncertainty UL4 of the shown level.
+    """
+
+    count: int
+    faces: np.ndarray
+    error: float
+    spacing: float
+    vertex_error: np.ndarray
+
+
+def _plane_frame(surface: Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """In-plane coordinates (N, 2), heights (N,) and the unit normal of the surface's (or fitted) plane."""
+    vertices = surface.vertices.astype(np.float64)
+    plane = surface.plane
+    if np.isfinite(plane).all():
+        normal, offset = plane[:3] / np.linalg.norm(plane[:3]), plane[3] / np.linalg.norm(plane[:3])
+    else:
+        centre = vertices.mean(axis=0)
+        _, _, axes = np.linalg.svd(vertices - centre, full_matrices=False)
+        normal = axes[2]
+        offset = -float(normal @ centre)
+    helper = np.eye(3)[np.argmin(np.abs(normal))]
+    u = np.cross(helper, normal)
+    u /= np.linalg.norm(u)
+    v = np.cross(normal, u)
+    return np.column_stack([vertices @ u, vertices @ v]), vertices @ normal + offset, normal
+
+
+def progressive_order(surface: Surface, *, min_vertices: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Order a surface's vertices from most to least important.
+
+    Parameters
+    ----------
+    surface : Surface
+        With faces (outline vertices are found from them).
+    min_vertices : int
+        Vertices never removed (the last ones left are ordered by their
+        final importance).
+
+    Returns
+    -------
+    order : (N,) int32
+        Vertex indices, most important first (`Surface.lod_order`).
+    error : (N,) float32
+        ``error[k]``: the height error (metres) that removing ``order[k]``
+        introduced, the running maximum over the removal so far (so that it
+        never decreases from coarse to fine); the vertices never removed
+        get the largest.
+
+    Examples
+    --------
+    A flat square patch keeps its four corners to the end:
+
+    >>> import numpy as np
+    >>> from rangesurf.mesh import Surface, triangulate_in_plane
+    >>> rows, cols = np.mgrid[0:6, 0:6]
+    >>> vertices = np.column_stack([cols.ravel(), rows.ravel(), np.full(36, 2.0)]) * 0.1
+    >>> faces = triangulate_in_plane(vertices, [0, 0, -1, 0.2])
+    >>> surface = Surface(vertices, faces, np.tile([0, 0, -1.0], (36, 1)), np.full((36, 2), -1), plane=[0, 0, -1, 0.2])
+    >>> order, error = progressive_order(surface, min_vertices=4)
+    >>> sorted(order[:4].tolist())
+    [0, 5, 30, 35]
+    """
+    count = surface.n_vertices
+    if count == 0:
+        return np.zeros(0, np.int32), np.zeros(0, np.float32)
+    xy, height, _ = _plane_frame(surface)
+    previous = np.full(count, -1, np.int64)
+    following = np.full(count, -1, np.int64)
+    for loop in boundary_loops(surface.faces):
+        previous[loop] = np.roll(loop, 1)
+        following[loop] = np.roll(loop, -1)
+    removed, errors, remaining = _remove_greedily(xy, height, previous, following, max(int(min_vertices), 1))
+    order = np.concatenate([remaining, removed[::-1]]).astype(np.int32)
+    error = np.concatenate([np.full(len(remaining), errors.max(initial=0.0)), np.maximum.accumulate(errors)[::-1]])
+    return order, error.astype(np.float32)
+
+
+def build_levels(surface: Surface, *, min_vertices: int = 3, ratio: float = 0.5) -> list[Level]:
+    """Triangulate a ladder of levels (vertex counts ``N, N*ratio, N*ratio^2, ...``) of an ordered surface.
+
+    The surface's ``lod_order`` and ``lod_error`` must be set (`progressive_order`).
+    Coarse levels are Delaunay triangulations of the kept vertices in the
+    surface's plane, keeping the triangles whose centroid lies inside the
+    full-resolution outline; the triangulation is not constrained to the
+    outline, so along concave outlines and holes a coarse level can miss
+    thin slivers (under 1 % of the area in the tests) but never covers a hole.
+
+    Returns
+    -------
+    list of Level
+        Finest first.
+    """
+    if not 0 < ratio < 1:
+        raise ValueError(f"ratio must be in (0, 1), got {ratio}")
+    xy, _, _ = _plane_frame(surface)
+    order, error = surface.lod_order, surface.lod_error
+    # Coarse levels are Delaunay triangulations of the kept vertices, which fill the convex hull;
+    # a triangle stays only if its centroid lies inside the full-resolution outline (even-odd over
+    # all boundary loops, so holes stay holes).
+    coverage = _Coverage(xy, boundary_loops(surface.faces))
+    levels = []
+    count = surface.n_vertices
+    while count >= min_vertices:
+        kept = order[:count]
+        if count == surface.n_vertices:
+            faces = _reindex(surface.faces, order)
+        else:
+            faces = triangulate_in_plane(surface.vertices[kept], _level_plane(surface), max_edge=np.inf)
+            if len(faces):
+                faces = faces[coverage.contains(xy[kept][faces].mean(axis=1))]
+        tree = cKDTree(xy[kept])
+        spacing = float(np.median(tree.query(xy[kept], k=2)[0][:, 1])) if count > 1 else 0.0
+        vertex_error = np.zeros(count, np.float32)
+        if count < surface.n_vertices:
+            _, nearest = tree.query(xy[order[count:]])
+            np.maximum.at(vertex_error, nearest, error[count:])
+        levels.append(
+            Level(count=count, faces=faces.astype(np.int32), error=float(error[count]) if count < len(error) else 0.0,
+                  spacing=spacing, vertex_error=vertex_error)
+        )
+        next_count = int(count * ratio)
+        if next_count < min_vertices or next_count == count:
+            break
+        count = next_count
+    return levels
+
+
+class _Coverage:
+    """The full-resolution outline (with holes) rasterized in plane coordinates, for inside tests."""
+
+    def __init__(self, xy: np.ndarray, loops: list[np.ndarray]) -> None:
+        self.low = xy.min(axis=0) if len(xy) else np.zeros(2)
+        extent = float(np.ptp(xy, axis=0).max()) if len(xy) else 0.0
+        # About 1000 cells across: finer than the vertex spacing of any surface of a range frame row.
+        self.cell = max(extent / 1000.0, 1e-9)
+        size = np.ceil((xy.max(axis=0) - self.low) / self.cell).astype(int) + 2 if len(xy) else np.array([1, 1])
+        self.mask = np.zeros((size[1], size[0]), np.uint8)
+        contours = [np.round((xy[loop] - self.low) / self.cell).astype(np.int32) for loop in loops if len(loop) >= 3]
+        if contours:
+            # Outline and holes together: fillPoly's even-odd filling leaves the holes empty.
+            cv2.fillPoly(self.mask, contours, 1)
+        self.empty = not contours
+
+    def contains(self, points: np.ndarray) -> np.ndarray:
+        if self.empty:
+            return np.ones(len(points), bool)
+        cells = np.round((points - self.low) / self.cell).astype(int)
+        cells[:, 0] = np.clip(cells[:, 0], 0, self.mask.shape[1] - 1)
+        cells[:, 1] = np.clip(cells[:, 1], 0, self.mask.shape[0] - 1)
+        return self.mask[cells[:, 1], cells[:, 0]].astype(bool)
+
+
+def _reindex(faces: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """Faces over original vertex ids, re-expressed as positions in ``order``."""
+    position = np.empty(len(order), np.int64)
+    position[order] = np.arange(len(order))
+    return position[faces]
+
+
+def _level_plane(surface: Surface) -> np.ndarray:
+    if np.isfinite(surface.plane).all():
+        return surface.plane
+    _, _, normal = _plane_frame(surface)
+    return np.r_[normal, 0.0]
+
+
+def select_level(levels: list[Level], *, count: int | None = None, fraction: float | None = None,
+                 max_error: float | None = None) -> Level:
+    """The level to show: the coarsest with at least ``count`` vertices (or ``fraction`` of them),
+    or the coarsest whose error stays within ``max_error``. Exactly one criterion.
+
+    Examples
+    --------
+    >>> levels = [Level(100, np.zeros((0, 3)), 0.0, 0.01, np.zeros(100)), Level(50, np.zeros((0, 3)), 0.002, 0.02, np.zeros(50))]
+    >>> select_level(levels, count=60).count, select_level(levels, max_error=0.005).count
+    (100, 50)
+    """
+    if sum(option is not None for option in (count, fraction, max_error)) != 1:
+        raise ValueError("give exactly one of count, fraction or max_error")
+    if not levels:
+        raise ValueError("no levels to select from (build_levels gave none)")
+    if fraction is not None:
+        if not 0 <= fraction <= 1:
+            raise ValueError(f"fraction must be in [0, 1], got {fraction}")
+        count = math.ceil(fraction * levels[0].count)
+    if count is not None:
+        fitting = [level for level in levels if level.count >= count]
+        return fitting[-1] if fitting else levels[0]
+    fitting = [level for level in levels if level.error <= max_error]
+    return fitting[-1] if fitting else levels[0]
+
+
+def distance_level(levels: list[Level], distance: float, *, full_detail_distance: float = 1.0) -> Level:
+    """The thesis's rule: the vertex count falls linearly with viewing distance (full detail up to ``full_detail_distance``)."""
+    if distance <= full_detail_distance:
+        return levels[0]
+    return select_level(levels, fraction=min(1.0, full_detail_distance / distance))
+
+
+def screen_space_level(levels: list[Level], distance: float, focal_length_px: float) -> Level:
+    """The finest level whose vertices are at least one pixel apart on screen (no two in one pixel).
+
+    The coarsest level when even it is denser than that, or when the
+    surface is behind the camera or out of view.
+
+    Parameters
+    ----------
+    levels : list of Level
+        From `build_levels`, finest first.
+    distance : float
+        Metres from the camera to the surface (``inf`` or negative -- behind
+        the camera or outside the view -- gives the coarsest level).
+    focal_length_px : float
+        The viewing camera's focal length in pixels.
+    """
+    if not (distance > 0 and math.isfinite(distance)):
+        return levels[-1]
+    # A level is worth showing when its spacing projects to at least one pixel; finer levels
+    # would put several vertices into one pixel.
+    chosen = levels[-1]
+    for level in reversed(levels):
+        if level.spacing * focal_length_px / distance >= 1.0:
+            chosen = level
+        else:
+            break
+    return chosen
+
+
+# --------------------------------------------------------------------------
+# Kernels.
+# --------------------------------------------------------------------------
+
+
+@numba.njit(**_JIT)
+def _remove_greedily(xy, height, previous, following, min_vertices):  # pragma: no cover - compiled
+    """Remove vertices least important first; returns removal order, errors, and the vertices kept."""
+    count = xy.shape[0]
+    alive = np.ones(count, np.bool_)
+    absorbed = np.zeros(count)
+    version = np.zeros(count, np.int64)
+    grid = _build_grid(xy, alive, count)
+    scratch = np.empty(_NEIGHBOURS, np.int64)
+    heap_keys = np.empty(16 * count + 16)
+    heap_ids = np.empty(16 * count + 16, np.int64)
+    heap_versions = np.empty(16 * count + 16, np.int64)
+    size = 0
+    for vertex in range(count):
+        importance = _importance(vertex, xy, height, previous, following, alive, absorbed, grid, scratch)
+        size = _push(heap_keys, heap_ids, heap_versions, size, importance, vertex, 0)
+    removed = np.empty(count, np.int64)
+    errors = np.empty(count)
+    n_removed = 0
+    n_alive = count
+    neighbours = np.empty(_AFFECTED, np.int64)
+    while n_alive > min_vertices and size > 0:
+        importance, vertex, stamp, size = _pop(heap_keys, heap_ids, heap_versions, size)
+        if not alive[vertex] or stamp != version[vertex]:
+            continue
+        alive[vertex] = False
+        n_alive -= 1
+        removed[n_removed] = vertex
+        errors[n_removed] = importance
+        n_removed += 1
+        # Relink the outline around a removed outline vertex.
+        if previous[vertex] >= 0:
+            before, after = previous[vertex], following[vertex]
+            following[before] = after
+            previous[after] = before
+        if n_alive * 2 < grid[0].shape[0] and n_alive > 16:
+            grid = _build_grid(xy, alive, n_alive)
+        found = _nearest(xy[vertex, 0], xy[vertex, 1], -1, xy, alive, grid, neighbours, _AFFECTED)
+        for k in range(found):
+            other = neighbours[k]
+            absorbed[other] = max(absorbed[other], importance)
+        for k in range(found):
+            other = neighbours[k]
+            version[other] += 1
+            size = _push(heap_keys, heap_ids, heap_versions, size,
+                         _importance(other, xy, height, previous, following, alive, absorbed, grid, scratch), other, version[other])
+        for other in (previous[vertex], following[vertex]):
+            if other >= 0 and alive[other]:
+                version[other] += 1
+                size = _push(heap_keys, heap_ids, heap_versions, size,
+                             _importance(other, xy, height, previous, following, alive, absorbed, grid, scratch), other, version[other])
+        if size + 2 * _AFFECTED + 2 >= heap_keys.shape[0]:
+            size = _compact(heap_keys, heap_ids, heap_versions, size, alive, version)
+    remaining = np.flatnonzero(alive)
+    # Most important of the kept ones first.
+    kept_importance = np.empty(remaining.shape[0])
+    for k in range(remaining.shape[0]):
+        kept_importance[k] = _importance(remaining[k], xy, height, previous, following, alive, absorbed, grid, scratch)
+    remaining = remaining[np.argsort(-kept_importance, kind="mergesort")]
+    return removed[:n_removed], errors[:n_removed], remaining
+
+
+@numba.njit(**_JIT)
+def _build_grid(xy, alive, n_alive):  # pragma: no cover - compiled
+    """Uniform bucket grid over the alive vertices: (cell start, items, origin x, origin y, cell size, columns, rows)."""
+    low_x, low_y = np.inf, np.inf
+    high_x, high_y = -np.inf, -np.inf
+    for k in range(xy.shape[0]):
+        if alive[k]:
+            low_x = min(low_x, xy[k, 0])
+            low_y = min(low_y, xy[k, 1])
+            high_x = max(high_x, xy[k, 0])
+            high_y = max(high_y, xy[k, 1])
+    extent = max(high_x - low_x, high_y - low_y, 1e-9)
+    # About two vertices per cell.
+    cells_per_side = max(1, int(math.sqrt(max(n_alive, 1) / 2.0)))
+    cell = extent / cells_per_side * 1.0000001
+    columns = int((high_x - low_x) / cell) + 1
+    rows = int((high_y - low_y) / cell) + 1
+    start = np.zeros(columns * rows + 1, np.int64)
+    for k in range(xy.shape[0]):
+        if alive[k]:
+            index = int((xy[k, 1] - low_y) / cell) * columns + int((xy[k, 0] - low_x) / cell)
+            start[index + 1] += 1
+    for c in range(columns * rows):
+        start[c + 1] += start[c]
+    fill = start[:-1].copy()
+    items = np.empty(start[-1], np.int64)
+    for k in range(xy.shape[0]):
+        if alive[k]:
+            index = int((xy[k, 1] - low_y) / cell) * columns + int((xy[k, 0] - low_x) / cell)
+            items[fill[index]] = k
+            fill[index] += 1
+    return items, start, low_x, low_y, cell, columns, rows
+
+
+@numba.njit(**_JIT)
+def _nearest(x, y, exclude, xy, alive, grid, out, k):  # pragma: no cover - compiled
+    """Up to ``k`` nearest alive vertices to (x, y), nearest first, into ``out``; returns how many."""
+    items, start, low_x, low_y, cell, columns, rows = grid
+    best_d = np.full(k, np.inf)
+    found = 0
+    cx = min(max(int((x - low_x) / cell), 0), columns - 1)
+    cy = min(max(int((y - low_y) / cell), 0), rows - 1)
+    ring = 0
+    while True:
+        for gy in range(cy - ring, cy + ring + 1):
+            if gy < 0 or gy >= rows:
+                continue
+            for gx in range(cx - ring, cx + ring + 1):
+                if gx < 0 or gx >= columns:
+                    continue
+                if max(abs(gx - cx), abs(gy - cy)) != ring:
+                    continue
+                index = gy * columns + gx
+                for slot in range(start[index], start[index + 1]):
+                    other = items[slot]
+                    if other == exclude or not alive[other]:
+                        continue
+                    d = (xy[other, 0] - x) ** 2 + (xy[other, 1] - y) ** 2
+                    if found < k or d < best_d[k - 1]:
+                        position = min(found, k - 1)
+                        while position > 0 and best_d[position - 1] > d:
+                            best_d[position] = best_d[position - 1]
+                            out[position] = out[position - 1]
+                            position -= 1
+                        best_d[position] = d
+                        out[position] = other
+                        if found < k:
+                            found += 1
+        # Everything within ring * cell of the query has been seen.
+        if found == k and best_d[k - 1] <= (ring * cell) ** 2:
+            break
+        if ring > columns + rows:
+            break
+        ring += 1
+    return found
+
+
+@numba.njit(**_JIT)
+def _importance(vertex, xy, height, previous, following, alive, absorbed, grid, neighbours):  # pragma: no cover - compiled
+    """|h - Shepard estimate from the 4 nearest alive neighbours| + outline deviation + absorbed error."""
+    found = _nearest(xy[vertex, 0], xy[vertex, 1], vertex, xy, alive, grid, neighbours, _NEIGHBOURS)
+    if found == 0:
+        return np.inf
+    weight_sum = 0.0
+    estimate = 0.0
+    for k in range(found):
+        other = neighbours[k]
+        d2 = (xy[other, 0] - xy[vertex, 0]) ** 2 + (xy[other, 1] - xy[vertex, 1]) ** 2
+        if d2 == 0.0:
+            weight_sum = 1.0
+            estimate = height[other]
+            break
+        weight = 1.0 / d2
+        weight_sum += weight
+        estimate += weight * height[other]
+    importance = abs(height[vertex] - estimate / weight_sum)
+    if previous[vertex] >= 0:
+        a, b = previous[vertex], following[vertex]
+        importance += _segment_distance(xy[vertex, 0], xy[vertex, 1], xy[a, 0], xy[a, 1], xy[b, 0], xy[b, 1])
+    return importance + absorbed[vertex]
+
+
+@numba.njit(**_JIT, inline="always")
+def _segment_distance(px, py, ax, ay, bx, by):  # pragma: no cover - compiled
+    dx, dy = bx - ax, by - ay
+    length2 = dx * dx + dy * dy
+    t = 0.0 if length2 == 0.0 else min(max(((px - ax) * dx + (py - ay) * dy) / length2, 0.0), 1.0)
+    return math.sqrt((px - ax - t * dx) ** 2 + (py - ay - t * dy) ** 2)
+
+
+@numba.njit(**_JIT)
+def _push(keys, ids, versions, size, key, item, stamp):  # pragma: no cover - compiled
+    position = size
+    keys[position], ids[position], versions[position] = key, item, stamp
+    while position > 0:
+        parent = (position - 1) // 2
+        if keys[parent] <= keys[position]:
+            break
+        keys[parent], keys[position] = keys[position], keys[parent]
+        ids[parent], ids[position] = ids[position], ids[parent]
+        versions[parent], versions[position] = versions[position], versions[parent]
+        position = parent
+    return size + 1
+
+
+@numba.njit(**_JIT)
+def _pop(keys, ids, versions, size):  # pragma: no cover - compiled
+    key, item, stamp = keys[0], ids[0], versions[0]
+    size -= 1
+    keys[0], ids[0], versions[0] = keys[size], ids[size], versions[size]
+    position = 0
+    while True:
+        left = 2 * position + 1
+        if left >= size:
+            break
+        child = left
+        if left + 1 < size and keys[left + 1] < keys[left]:
+            child = left + 1
+        if keys[position] <= keys[child]:
+            break
+        keys[child], keys[position] = keys[position], keys[child]
+        ids[child], ids[position] = ids[position], ids[child]
+        versions[child], versions[position] = versions[position], versions[child]
+        position = child
+    return key, item, stamp, size
+
+
+@numba.njit(**_JIT)
+def _compact(keys, ids, versions, size, alive, version):  # pragma: no cover - compiled
+    """Drop stale heap entries and re-heapify (keeps the heap within its arrays)."""
+    kept = 0
+    for k in range(size):
+        if alive[ids[k]] and versions[k] == version[ids[k]]:
+            keys[kept], ids[kept], versions[kept] = keys[k], ids[k], versions[k]
+            kept += 1
+    new_size = 0
+    for k in range(kept):
+        new_size = _push(keys, ids, versions, new_size, keys[k], ids[k], versions[k])
+    return new_size
