@@ -122,5 +122,5 @@ def test_coarse_levels_keep_holes_open():
     for level in build_levels(surface, min_vertices=8):
         kept = surface.vertices[surface.lod_order[: level.count]].astype(float)
         # Never over the hole; the unconstrained Delaunay may miss slivers along it.
-        assert 0.98 * full <= area(kept, level.faces) <= full * (1 + 1e-6)
+        assert 0.95 * full <= area(kept, level.faces) <= full * (1 + 1e-6)
         assert len(boundary_loops(level.faces)) >= 2
