@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from rangesurf.mesh import Surface, boundary_loops, triangulate_in_plane
 
-__all__ = ["Level", "progressive_order", "build_levels", "select_level", "screen_space_level", "distance_level"]
+__all__ = ["Level", "prepare_levels", "progressive_order", "build_levels", "select_level", "screen_space_level", "distance_level"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 # Neighbours that estimate a vertex's height (Shepard over the four nearest, as the thesis).
@@ -141,6 +141,28 @@ def progressive_order(surface: Surface, *, min_vertices: int = 3) -> tuple[np.nd
     order = np.concatenate([remaining, removed[::-1]]).astype(np.int32)
     error = np.concatenate([np.full(len(remaining), errors.max(initial=0.0)), np.maximum.accumulate(errors)[::-1]])
     return order, error.astype(np.float32)
+
+
+def prepare_levels(surface: Surface, *, min_vertices: int = 3) -> Surface:
+    """Order a surface's vertices and precompute its levels, in place; returns the surface.
+
+    Afterwards ``surface.at_level(count=..., fraction=..., max_error=...)`` is a lookup.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from rangesurf.mesh import Surface, triangulate_in_plane
+    >>> rows, cols = np.mgrid[0:20, 0:20] * 0.05
+    >>> vertices = np.column_stack([cols.ravel(), rows.ravel(), 2.0 + 0.1 * np.sin(4 * cols.ravel())])
+    >>> faces = triangulate_in_plane(vertices, [0, 0, -1, 2])
+    >>> surface = prepare_levels(Surface(vertices, faces, np.tile([0, 0, -1.0], (400, 1)), np.full((400, 2), -1)))
+    >>> coarse = surface.at_level(fraction=0.1)
+    >>> coarse.n_vertices, "UL4" in coarse.uncertainty
+    (50, True)
+    """
+    surface.lod_order, surface.lod_error = progressive_order(surface, min_vertices=min_vertices)
+    surface.levels = build_levels(surface, min_vertices=min_vertices)
+    return surface
 
 
 def build_levels(surface: Surface, *, min_vertices: int = 3, ratio: float = 0.5) -> list[Level]:

@@ -76,6 +76,8 @@ class Surface:
     lod_error : (N,) float32
         Geometric error (metres) introduced when ``lod_order[k]`` is
         removed; 0 until computed.
+    levels : list of rangesurf.lod.Level
+        Precomputed levels of detail, finest first (`rangesurf.lod.prepare_levels`).
     """
 
     vertices: np.ndarray
@@ -87,6 +89,7 @@ class Surface:
     uncertainty: dict[str, np.ndarray] = field(default_factory=dict)
     lod_order: np.ndarray | None = None
     lod_error: np.ndarray | None = None
+    levels: list = field(default_factory=list)
 
     def __post_init__(self) -> None:
         self.vertices = np.ascontiguousarray(self.vertices, dtype=np.float32).reshape(-1, 3)
@@ -120,6 +123,29 @@ class Surface:
     @property
     def n_faces(self) -> int:
         return len(self.faces)
+
+    def at_level(self, *, count: int | None = None, fraction: float | None = None, max_error: float | None = None) -> Surface:
+        """The surface at a level of detail: the coarsest precomputed level with at least ``count``
+        vertices (or ``fraction`` of them), or within ``max_error`` metres.
+
+        The returned surface holds the kept vertices (most important first),
+        the level's triangles, and the level's per-vertex error as
+        uncertainty ``"UL4"``. Without precomputed levels the surface itself
+        is returned.
+        """
+        if not self.levels:
+            return self
+        from rangesurf.lod import select_level
+
+        level = select_level(self.levels, count=count, fraction=fraction, max_error=max_error)
+        kept = self.lod_order[: level.count]
+        uncertainty = {name: values[kept] for name, values in self.uncertainty.items()}
+        uncertainty["UL4"] = level.vertex_error
+        return Surface(
+            vertices=self.vertices[kept], faces=level.faces, normals=self.normals[kept], pixels=self.pixels[kept],
+            plane=self.plane, segment=self.segment, uncertainty=uncertainty,
+            lod_order=np.arange(level.count, dtype=np.int32), lod_error=self.lod_error[: level.count],
+        )
 
     def area(self) -> float:
         """Total triangle area in square metres."""
