@@ -30,7 +30,8 @@ def test_a_plane_reduces_to_its_outline():
                            plane=(0.0, 0.0, -1.0, 2.0))
     (outline,) = boundary_loops(surface.faces)
     xy = surface.vertices[outline, :2].astype(float)
-    turn = np.cross(xy - np.roll(xy, 1, axis=0), np.roll(xy, -1, axis=0) - xy)
+    before, after = xy - np.roll(xy, 1, axis=0), np.roll(xy, -1, axis=0) - xy
+    turn = before[:, 0] * after[:, 1] - before[:, 1] * after[:, 0]
     corners = set(outline[np.abs(turn) > 1e-9].tolist())
     # The L's six corners, with the reflex one cut by the half cell whose three corners are in the L.
     assert len(corners) == 7
