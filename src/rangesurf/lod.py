@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from rangesurf.mesh import Surface, boundary_loops, triangulate_in_plane
 
-__all__ = ["Level", "prepare_levels", "progressive_order", "build_levels", "select_level", "screen_space_level", "distance_level"]
+__all__ = ["Level", "prepare_levels", "progressive_order", "build_levels", "build_levels_at", "select_level", "screen_space_level", "distance_level"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 # Neighbours that estimate a vertex's height (Shepard over the four nearest, as the thesis).
@@ -182,6 +182,19 @@ def build_levels(surface: Surface, *, min_vertices: int = 3, ratio: float = 0.5)
     """
     if not 0 < ratio < 1:
         raise ValueError(f"ratio must be in (0, 1), got {ratio}")
+    counts = []
+    count = surface.n_vertices
+    while count >= min_vertices:
+        counts.append(count)
+        next_count = int(count * ratio)
+        if next_count < min_vertices or next_count == count:
+            break
+        count = next_count
+    return build_levels_at(surface, counts)
+
+
+def build_levels_at(surface: Surface, counts: list[int]) -> list[Level]:
+    """Triangulate the levels of an ordered surface at the given vertex counts (see `build_levels`)."""
     xy, _, _ = _plane_frame(surface)
     order, error = surface.lod_order, surface.lod_error
     # Coarse levels are Delaunay triangulations of the kept vertices, which fill the convex hull;
@@ -189,8 +202,9 @@ def build_levels(surface: Surface, *, min_vertices: int = 3, ratio: float = 0.5)
     # all boundary loops, so holes stay holes).
     coverage = _Coverage(xy, boundary_loops(surface.faces))
     levels = []
-    count = surface.n_vertices
-    while count >= min_vertices:
+    for count in counts:
+        if not 1 <= count <= surface.n_vertices:
+            raise ValueError(f"level vertex counts must be in 1..{surface.n_vertices}, got {count}")
         kept = order[:count]
         if count == surface.n_vertices:
             faces = _reindex(surface.faces, order)
@@ -208,10 +222,6 @@ def build_levels(surface: Surface, *, min_vertices: int = 3, ratio: float = 0.5)
             Level(count=count, faces=faces.astype(np.int32), error=float(error[count]) if count < len(error) else 0.0,
                   spacing=spacing, vertex_error=vertex_error)
         )
-        next_count = int(count * ratio)
-        if next_count < min_vertices or next_count == count:
-            break
-        count = next_count
     return levels
 
 
