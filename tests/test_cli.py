@@ -136,3 +136,15 @@ def test_segment_writes_labels_that_match_truth_and_a_figure(tmp_path, capsys):
 def test_segment_names_a_missing_file(tmp_path, capsys):
     assert main(["segment", str(tmp_path / "nothing.3d"), "--out", str(tmp_path / "seg")]) == 2
     assert "nothing.3d" in capsys.readouterr().err
+
+
+def test_lod_writes_a_fine_to_coarse_figure(tmp_path, capsys):
+    import cv2
+
+    main(["simulate", "--frames", "1", "--out", str(tmp_path / "sim"), "--quiet"])
+    assert main(["lod", str(tmp_path / "sim" / "frame000000.npz"), "--out", str(tmp_path / "lod"), "--quiet"]) == 0
+    figure = cv2.imread(str(tmp_path / "lod" / "frame000000_lod.png"))
+    assert figure is not None and figure.shape[1] == 4 * 300
+    out = capsys.readouterr().out
+    counts = [int(part.split(" (")[0]) for part in out.split(" at ")[1].split("; wrote")[0].split(", ")]
+    assert counts == sorted(counts, reverse=True) and counts[-1] < 0.01 * counts[0]

@@ -227,6 +227,32 @@ def _command_segment(args: argparse.Namespace) -> int:
     return 0
 
 
+def _command_lod(args: argparse.Namespace) -> int:
+    from rangesurf import report
+    from rangesurf.lod import _plane_frame, prepare_levels
+    from rangesurf.mesh import triangulate_segments
+    from rangesurf.segment import segment_frame
+
+    frames = rangesurf.load(args.path, sensor=args.sensor, topic=args.topic)
+    args.out.mkdir(parents=True, exist_ok=True)
+    for index, frame in enumerate(_progress(frames, total=len(frames), description="meshing", quiet=args.quiet)):
+        result = segment_frame(frame)
+        surfaces = triangulate_segments(result.points, result.segmentation)
+        name = Path(args.path).stem if len(frames) == 1 and Path(args.path).is_file() else f"frame{index:06d}"
+        if not surfaces:
+            print(f"{name}: no surface to mesh")
+            continue
+        surface = prepare_levels(max(surfaces, key=lambda item: item.n_vertices))
+        shown = [surface.levels[k] for k in np.unique(np.linspace(0, len(surface.levels) - 1, args.panels).round().astype(int))]
+        xy, _, _ = _plane_frame(surface)
+        report.write_image(args.out / f"{name}_lod.png", report.lod_figure(xy, shown, surface.lod_order))
+        print(f"{name}: {len(surfaces)} surfaces, {sum(s.n_faces for s in surfaces)} triangles; the largest "
+              f"(segment {surface.segment}, {surface.n_vertices} vertices) at "
+              + ", ".join(f"{level.count} ({1000 * level.error:.1f} mm)" for level in shown)
+              + f"; wrote {name}_lod.png")
+    return 0
+
+
 def _command_bench(args: argparse.Namespace) -> int:
     from rangesurf import bench
 
@@ -290,6 +316,15 @@ def build_parser() -> argparse.ArgumentParser:
     segment.add_argument("--topic", help="ROS bag topic to read")
     segment.add_argument("--quiet", action="store_true", help="no progress bar")
     segment.set_defaults(handler=_command_segment)
+
+    lod = commands.add_parser("lod", help="mesh the segments and show the largest surface from fine to coarse (thesis Figure 3.8)")
+    lod.add_argument("path", help="file, folder, glob or ROS bag")
+    lod.add_argument("--out", type=Path, required=True, help="output folder (one figure per frame)")
+    lod.add_argument("--panels", type=int, default=4, help="levels shown (default 4)")
+    lod.add_argument("--sensor", choices=sorted(SENSORS), help="override the sensor model")
+    lod.add_argument("--topic", help="ROS bag topic to read")
+    lod.add_argument("--quiet", action="store_true", help="no progress bar")
+    lod.set_defaults(handler=_command_lod)
 
     bench = commands.add_parser("bench", help="time rangesurf against peer libraries (ratios)")
     bench.add_argument("--data", type=Path, help="real data folder (default ../shared/data beside the checkout)")

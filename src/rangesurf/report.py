@@ -11,7 +11,10 @@ import numpy as np
 
 from rangesurf.io._common import atomic_path
 
-__all__ = ["colorize_range", "colorize_edges", "colorize_labels", "nxd_scatter", "segmentation_figure", "image_panel", "write_image"]
+__all__ = [
+    "colorize_range", "colorize_edges", "colorize_labels", "nxd_scatter", "segmentation_figure", "wireframe",
+    "lod_figure", "image_panel", "write_image",
+]
 
 _NO_RETURN_BGR = (64, 64, 64)
 _LABEL_HEIGHT = 22
@@ -150,6 +153,53 @@ def segmentation_figure(range_image: np.ndarray, labels: np.ndarray, nxd: np.nda
     tiles.append(nxd_scatter(nxd, labels, size=(height * scale, width * scale)))
     captions = ["normalized range", f"segments ({int(labels.max(initial=0))}){' - ' + title if title else ''}", "N x D space by segment"]
     return image_panel(tiles, captions, columns=3, scale=1)
+
+
+def wireframe(xy: np.ndarray, faces: np.ndarray, *, size: tuple[int, int], bounds: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Triangle edges of a mesh drawn in 2-D (e.g. its plane's coordinates), dark on white.
+
+    Parameters
+    ----------
+    xy : (N, 2) float array
+        Vertex positions.
+    faces : (M, 3) int array
+    size : (height, width)
+        Image size in pixels.
+    bounds : (low, high), optional
+        The (2,) corners mapped to the image; default the vertices' extent
+        (share it between panels of one surface).
+    """
+    height, width = size
+    image = np.full((height, width, 3), 255, np.uint8)
+    if len(xy) == 0:
+        return image
+    low, high = bounds if bounds is not None else (xy.min(axis=0), xy.max(axis=0))
+    scale = 0.94 * min(width / max(high[0] - low[0], 1e-12), height / max(high[1] - low[1], 1e-12))
+    offset = np.array([width, height]) / 2 - scale * (np.asarray(low) + np.asarray(high)) / 2
+    pixels = np.round(xy * scale + offset).astype(np.int32)
+    if len(faces):
+        cv2.polylines(image, list(pixels[np.asarray(faces)]), True, (90, 60, 30), 1, cv2.LINE_AA)
+    for x, y in pixels:
+        cv2.circle(image, (int(x), int(y)), 1, (0, 0, 200), -1)
+    return image
+
+
+def lod_figure(xy: np.ndarray, levels: list, order: np.ndarray, *, size: tuple[int, int] = (300, 300)) -> np.ndarray:
+    """Thesis Figure 3.8: one surface from fine to coarse (one wireframe per level, shared scale).
+
+    Parameters
+    ----------
+    xy : (N, 2) float array
+        The surface's vertices in its plane's coordinates.
+    levels : list of rangesurf.lod.Level
+        The levels to draw, finest first.
+    order : (N,) int array
+        The surface's ``lod_order``.
+    """
+    bounds = (xy.min(axis=0), xy.max(axis=0))
+    tiles = [wireframe(xy[order[: level.count]], level.faces, size=size, bounds=bounds) for level in levels]
+    captions = [f"{level.count} vertices, error {1000 * level.error:.1f} mm" for level in levels]
+    return image_panel(tiles, captions, columns=len(tiles), scale=1)
 
 
 def image_panel(images: Sequence[np.ndarray], labels: Sequence[str], *, columns: int = 2, scale: int | None = None) -> np.ndarray:
