@@ -125,3 +125,23 @@ def test_coarse_levels_keep_holes_open():
         # Never over the hole; the unconstrained Delaunay may miss slivers along it.
         assert 0.95 * full <= area(kept, level.faces) <= full * (1 + 1e-6)
         assert len(boundary_loops(level.faces)) >= 2
+
+
+def test_view_level_follows_distance_and_culls():
+    from rangesurf.lod import prepare_levels, view_level
+
+    surface = grid_surface(41, lambda x, y: 2.0 + 0.02 * np.sin(8 * x))
+    prepare_levels(surface)
+    view = dict(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
+
+    def at(distance, sideways=0.0):
+        transform = np.eye(4)
+        transform[:3, 3] = (sideways - 0.5, -0.5, distance - 2.0)  # the patch's centre `distance` ahead
+        return view_level(surface, transform, **view).count
+
+    near, middle, far = at(1.5), at(20.0), at(200.0)
+    assert near >= middle >= far and near > far
+    assert far == surface.levels[-1].count or far < middle
+    assert at(5.0, sideways=100.0) == surface.levels[-1].count  # far off to the side: out of view
+    behind = np.diag([1.0, 1.0, -1.0, 1.0])
+    assert view_level(surface, behind, **view).count == surface.levels[-1].count

@@ -148,3 +148,27 @@ def test_empty_segmentation_gives_no_surfaces():
     labels = np.zeros(SR3000.shape, np.int32)
     empty = Segmentation(labels, np.full((1, 4), np.nan), np.full(1, np.nan), np.array([0]))
     assert triangulate_segments(wall(), empty) == []
+
+
+def test_small_holes_are_filled_and_large_ones_kept():
+    from rangesurf.mesh import fill_small_holes
+
+    labels = np.ones(SR3000.shape, np.int32)
+    labels[60:62, 80:82] = 0  # a small hole (a few centimetres around at 2 m)
+    labels[20:50, 20:60] = 0  # a large one
+    (surface,) = triangulate_segments(wall(), one_segment(labels))
+    loops = boundary_loops(surface.faces)
+    assert len(loops) == 3
+    filled = fill_small_holes(surface, max_perimeter=0.2)
+    assert len(boundary_loops(filled.faces)) == 2
+    assert filled.n_vertices == surface.n_vertices + 1
+    assert filled.area() > surface.area()
+    assert (filled.pixels[-1] == -1).all() and filled.uncertainty["UL2"][-1] == pytest.approx(0.002)
+    new = filled.vertices[-1]
+    assert new[2] == pytest.approx(2.0, abs=1e-5)  # on the wall's plane
+    corners = filled.vertices[filled.faces[-8:]].astype(float)
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    assert (normals[:, 2] < 0).all()  # wound like the rest: facing the sensor
+    assert fill_small_holes(surface, max_perimeter=0.0) is surface
+    with pytest.raises(ValueError, match="max_perimeter"):
+        fill_small_holes(surface, max_perimeter=-1)

@@ -40,7 +40,7 @@ from scipy.spatial import cKDTree
 
 from rangesurf.mesh import Surface, boundary_loops, triangulate_in_plane
 
-__all__ = ["Level", "prepare_levels", "progressive_order", "build_levels", "build_levels_at", "select_level", "screen_space_level", "distance_level"]
+__all__ = ["Level", "prepare_levels", "progressive_order", "build_levels", "build_levels_at", "view_level", "select_level", "screen_space_level", "distance_level"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 # Neighbours that estimate a vertex's height (Shepard over the four nearest, as the thesis).
@@ -324,6 +324,64 @@ def screen_space_level(levels: list[Level], distance: float, focal_length_px: fl
         else:
             break
     return chosen
+
+
+def view_level(surface: Surface, T_camera_surface: np.ndarray, *, fx: float, fy: float, cx: float, cy: float,
+               width: int, height: int, near: float = 0.05) -> Level:
+    """The level to render a surface with, from a camera: screen-space rule, coarsest when out of view.
+
+    Parameters
+    ----------
+    surface : Surface
+        With levels (`prepare_levels`).
+    T_camera_surface : (4, 4) array
+        The surface's frame (its vertices' frame) in the camera's optical
+        frame (x right, y down, z forward).
+    fx, fy, cx, cy : float
+        Pinhole intrinsics of the view, in pixels.
+    width, height : int
+        Viewport size in pixels.
+    near : float
+        Near clipping distance (metres).
+
+    Returns
+    -------
+    Level
+        The finest level whose vertices stay at least one pixel apart at
+        the surface's nearest distance; the coarsest level when the surface's
+        bounding sphere lies behind the camera or outside the viewport.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from rangesurf.mesh import Surface, triangulate_in_plane
+    >>> rows, cols = np.mgrid[0:20, 0:20] * 0.05
+    >>> vertices = np.column_stack([cols.ravel(), rows.ravel(), 2.0 + 0.1 * np.sin(4 * cols.ravel())])
+    >>> surface = prepare_levels(Surface(vertices, triangulate_in_plane(vertices, [0, 0, -1, 2]),
+    ...                                  np.tile([0, 0, -1.0], (400, 1)), np.full((400, 2), -1)))
+    >>> view = dict(fx=500.0, fy=500.0, cx=320.0, cy=240.0, width=640, height=480)
+    >>> view_level(surface, np.eye(4), **view).count == surface.levels[0].count
+    True
+    >>> behind = np.diag([1.0, 1.0, -1.0, 1.0])
+    >>> view_level(surface, behind, **view).count == surface.levels[-1].count
+    True
+    """
+    if not surface.levels:
+        raise ValueError("the surface has no levels; call prepare_levels first")
+    vertices = surface.vertices.astype(np.float64)
+    centre_surface = (vertices.min(axis=0) + vertices.max(axis=0)) / 2
+    radius = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)) / 2)
+    transform = np.asarray(T_camera_surface, dtype=np.float64)
+    centre = transform[:3, :3] @ centre_surface + transform[:3, 3]
+    if centre[2] + radius < near:
+        return surface.levels[-1]
+    depth = max(centre[2], near)
+    # The sphere's image: its centre projected, widened by its radius at that depth.
+    u, v = fx * centre[0] / depth + cx, fy * centre[1] / depth + cy
+    reach_u, reach_v = fx * radius / depth, fy * radius / depth
+    if u + reach_u < 0 or u - reach_u > width or v + reach_v < 0 or v - reach_v > height:
+        return surface.levels[-1]
+    return screen_space_level(surface.levels, max(centre[2] - radius, near), fx)
 
 
 # --------------------------------------------------------------------------

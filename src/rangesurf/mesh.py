@@ -38,7 +38,9 @@ from rangesurf._checks import check_point_grid
 from rangesurf._grid import ranges
 from rangesurf.segment import Segmentation
 
-__all__ = ["Surface", "triangulate_segments", "triangulate_in_plane", "boundary_loops", "UNCERTAINTY_LEVELS"]
+__all__ = [
+    "Surface", "triangulate_segments", "triangulate_in_plane", "boundary_loops", "fill_small_holes", "UNCERTAINTY_LEVELS",
+]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 UNCERTAINTY_LEVELS = ("UL1", "UL2", "UL3", "UL4")
@@ -554,3 +556,68 @@ def boundary_loops(faces: ArrayLike) -> list[np.ndarray]:
     loops.sort(key=len, reverse=True)
     return loops
 
+
+
+def fill_small_holes(surface: Surface, *, max_perimeter: float) -> Surface:
+    """Close the holes whose outline is shorter than ``max_perimeter`` metres (deferrable work).
+
+    Each such hole gets one new vertex at the centre of its outline (moved
+    onto the surface's plane where it has one) and a fan of triangles to
+    the outline, wound like their neighbours. The outline of the surface
+    (its longest boundary loop) is never filled. New vertices have no grid
+    pixel (-1, -1) and the mean uncertainty of their hole's outline; the
+    level-of-detail order is reset (rebuild it with
+    `rangesurf.lod.prepare_levels`).
+
+    Returns
+    -------
+    Surface
+        A new surface (the input is unchanged).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> rows, cols = np.mgrid[0:7, 0:7] * 0.1
+    >>> keep = ~((np.abs(rows - 0.35) < 0.06) & (np.abs(cols - 0.35) < 0.06))  # a 2x2 block of points missing
+    >>> vertices = np.column_stack([cols[keep], rows[keep], np.full(keep.sum(), 2.0)])
+    >>> faces = triangulate_in_plane(vertices, [0, 0, -1, 2], max_edge=0.15)
+    >>> holed = Surface(vertices, faces, np.tile([0, 0, -1.0], (len(vertices), 1)), np.full((len(vertices), 2), -1))
+    >>> len(boundary_loops(holed.faces)), len(boundary_loops(fill_small_holes(holed, max_perimeter=1.0).faces))
+    (2, 1)
+    """
+    if not (isinstance(max_perimeter, (int, float)) and max_perimeter >= 0):
+        raise ValueError(f"max_perimeter must be >= 0 metres, got {max_perimeter!r}")
+    loops = boundary_loops(surface.faces)
+    vertices = surface.vertices.astype(np.float64)
+    perimeters = [float(np.linalg.norm(vertices[loop] - vertices[np.roll(loop, -1)], axis=1).sum()) for loop in loops]
+    outline = int(np.argmax(perimeters)) if loops else -1
+    new_vertices, new_faces, new_uncertainty = [], [], {name: [] for name in surface.uncertainty}
+    next_index = surface.n_vertices
+    for index, (loop, perimeter) in enumerate(zip(loops, perimeters)):
+        if index == outline or perimeter > max_perimeter or len(loop) < 3:
+            continue
+        centre = vertices[loop].mean(axis=0)
+        if np.isfinite(surface.plane).all():
+            normal = surface.plane[:3] / np.linalg.norm(surface.plane[:3])
+            centre -= (normal @ centre + surface.plane[3] / np.linalg.norm(surface.plane[:3])) * normal
+        new_vertices.append(centre)
+        # The boundary edge a -> b belongs to a face wound a -> b; the new face runs b -> a.
+        for a, b in zip(loop, np.roll(loop, -1)):
+            new_faces.append((b, a, next_index))
+        for name, values in surface.uncertainty.items():
+            new_uncertainty[name].append(float(values[loop].mean()))
+        next_index += 1
+    if not new_vertices:
+        return surface
+    count = len(new_vertices)
+    normals = surface.normals[: 1].repeat(count, axis=0) if np.isfinite(surface.plane).all() else _vertex_normals(
+        np.vstack([vertices, new_vertices]), np.vstack([surface.faces, new_faces]))[-count:]
+    return Surface(
+        vertices=np.vstack([vertices, new_vertices]),
+        faces=np.vstack([surface.faces, np.asarray(new_faces)]),
+        normals=np.vstack([surface.normals, normals]),
+        pixels=np.vstack([surface.pixels, np.full((count, 2), -1)]),
+        plane=surface.plane,
+        segment=surface.segment,
+        uncertainty={name: np.concatenate([values, new_uncertainty[name]]) for name, values in surface.uncertainty.items()},
+    )
