@@ -159,12 +159,24 @@ def _command_demo(args: argparse.Namespace) -> int:
             f"{1000 * np.sqrt(np.mean((smooth - truth.range)[kept] ** 2)):9.2f}  {int((frame.valid & ~np.isfinite(smooth)).sum()):7d} | "
             f"{result.segmentation.n_segments:5d}  {scores.correct:7d}/{scores.n_truth:<5d}  {scores.mean_normal_error_deg:7.2f} deg"
         )
+    if loaded:
+        from rangesurf.lod import prepare_levels
+        from rangesurf.mesh import triangulate_segments
+
+        surfaces = triangulate_segments(result.points, result.segmentation)
+        if surfaces:
+            largest = prepare_levels(max(surfaces, key=lambda item: item.n_vertices))
+            print()
+            print(f"  last frame meshed: {len(surfaces)} surfaces, {sum(item.n_faces for item in surfaces)} triangles; "
+                  f"its largest surface from {largest.n_vertices} vertices down to (vertices, level-of-detail error) "
+                  + ", ".join(f"{level.count} ({1000 * level.error:.1f} mm)" for level in largest.levels[1::3]))
     print()
     print("  denoised: outlier removal + anisotropic diffusion with the sensor's noise model (RMSE on the")
     print("  pixels the simulator did not corrupt). Planar segments: normals, then region growing; 'correct' is")
     print(f"  Hoover et al.'s correct detection at T = 0.8 of the true planar surfaces of >= {min_region} pixels.")
-    print("  Next: `rangesurf info " + str(out) + "`, `rangesurf denoise FILE --out DIR`, `rangesurf segment FILE --out DIR`;")
-    print("  the later stages (mesh, register, merge, uncertainty) join this demo as they land.")
+    print("  Next: `rangesurf info " + str(out) + "`, `rangesurf denoise FILE --out DIR`, `rangesurf segment FILE --out DIR`,")
+    print("  `rangesurf lod FILE --out DIR`;")
+    print("  The later stages (register, merge, uncertainty) join this demo as they land.")
     return 0
 
 
