@@ -485,42 +485,53 @@ def _build_grid(xy, alive, n_alive):  # pragma: no cover - compiled
     return items, start, low_x, low_y, cell, columns, rows
 
 
+@numba.njit(**_JIT, inline="always")
+def _scan_cell(index, x, y, exclude, xy, alive, items, start, best_d, out, found, k):  # pragma: no cover - compiled
+    for slot in range(start[index], start[index + 1]):
+        other = items[slot]
+        if other == exclude or not alive[other]:
+            continue
+        d = (xy[other, 0] - x) ** 2 + (xy[other, 1] - y) ** 2
+        if found < k or d < best_d[k - 1]:
+            position = min(found, k - 1)
+            while position > 0 and best_d[position - 1] > d:
+                best_d[position] = best_d[position - 1]
+                out[position] = out[position - 1]
+                position -= 1
+            best_d[position] = d
+            out[position] = other
+            if found < k:
+                found += 1
+    return found
+
+
 @numba.njit(**_JIT)
 def _nearest(x, y, exclude, xy, alive, grid, out, k):  # pragma: no cover - compiled
     """Up to ``k`` nearest alive vertices to (x, y), nearest first, into ``out``; returns how many."""
     items, start, low_x, low_y, cell, columns, rows = grid
     best_d = np.full(k, np.inf)
     found = 0
-    cx = min(max(int((x - low_x) / cell), 0), columns - 1)
-    cy = min(max(int((y - low_y) / cell), 0), rows - 1)
+    fx = (x - low_x) / cell
+    fy = (y - low_y) / cell
+    cx = min(max(int(fx), 0), columns - 1)
+    cy = min(max(int(fy), 0), rows - 1)
+    # Distance from the query to the border of its own cell: rings 0..r have seen every vertex
+    # within (r + margin) cells.
+    margin = max(min(fx - cx, cx + 1 - fx, fy - cy, cy + 1 - fy), 0.0)
     ring = 0
     while True:
-        for gy in range(cy - ring, cy + ring + 1):
-            if gy < 0 or gy >= rows:
-                continue
-            for gx in range(cx - ring, cx + ring + 1):
-                if gx < 0 or gx >= columns:
-                    continue
-                if max(abs(gx - cx), abs(gy - cy)) != ring:
-                    continue
-                index = gy * columns + gx
-                for slot in range(start[index], start[index + 1]):
-                    other = items[slot]
-                    if other == exclude or not alive[other]:
-                        continue
-                    d = (xy[other, 0] - x) ** 2 + (xy[other, 1] - y) ** 2
-                    if found < k or d < best_d[k - 1]:
-                        position = min(found, k - 1)
-                        while position > 0 and best_d[position - 1] > d:
-                            best_d[position] = best_d[position - 1]
-                            out[position] = out[position - 1]
-                            position -= 1
-                        best_d[position] = d
-                        out[position] = other
-                        if found < k:
-                            found += 1
-        # Everything within ring * cell of the query has been seen.
-        if found == k and best_d[k - 1] <= (ring * cell) ** 2:
+        if ring == 0:
+            found = _scan_cell(cy * columns + cx, x, y, exclude, xy, alive, items, start, best_d, out, found, k)
+        else:
+            for gx in range(max(cx - ring, 0), min(cx + ring, columns - 1) + 1):
+                for gy in (cy - ring, cy + ring):
+                    if 0 <= gy < rows:
+                        found = _scan_cell(gy * columns + gx, x, y, exclude, xy, alive, items, start, best_d, out, found, k)
+            for gy in range(max(cy - ring + 1, 0), min(cy + ring - 1, rows - 1) + 1):
+                for gx in (cx - ring, cx + ring):
+                    if 0 <= gx < columns:
+                        found = _scan_cell(gy * columns + gx, x, y, exclude, xy, alive, items, start, best_d, out, found, k)
+        if found == k and best_d[k - 1] <= ((ring + margin) * cell) ** 2:
             break
         if ring > columns + rows:
             break

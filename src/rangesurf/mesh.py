@@ -530,9 +530,10 @@ def boundary_loops(faces: ArrayLike) -> list[np.ndarray]:
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     # A directed edge is on the boundary when its reverse is not used by any face.
     base = int(faces.max()) + 1
-    codes = np.unique(directed[:, 0] * base + directed[:, 1])
+    codes = np.sort(directed[:, 0] * base + directed[:, 1])
     reverse = (codes % base) * base + codes // base
-    boundary = codes[~np.isin(reverse, codes, assume_unique=True)]
+    position = np.minimum(np.searchsorted(codes, reverse), len(codes) - 1)
+    boundary = np.unique(codes[codes[position] != reverse])
     successors: dict[int, list[int]] = {}
     for a, b in zip((boundary // base).tolist(), (boundary % base).tolist()):
         successors.setdefault(a, []).append(b)
