@@ -299,6 +299,13 @@ def build_parser() -> argparse.ArgumentParser:
             command.add_argument("--out", type=Path, default=Path(out), help=f"output folder (default {out})")
         command.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    def add_input_options(command: argparse.ArgumentParser) -> None:
+        """The options of every command that reads frames: where from, which sensor, which topic."""
+        command.add_argument("path", help="file, folder, glob or ROS bag")
+        command.add_argument("--sensor", choices=sorted(SENSORS), help="override the sensor model")
+        command.add_argument("--topic", help="ROS bag topic to read")
+        command.add_argument("--quiet", action="store_true", help="no progress bar")
+
     simulate = commands.add_parser("simulate", help="simulate a sequence with ground truth")
     add_simulation_options(simulate, frames=10, out=None)
     simulate.set_defaults(handler=_command_simulate)
@@ -308,34 +315,25 @@ def build_parser() -> argparse.ArgumentParser:
     demo.set_defaults(handler=_command_demo)
 
     denoise = commands.add_parser("denoise", help="remove outliers and smooth range images, keeping edges")
-    denoise.add_argument("path", help="file, folder, glob or ROS bag")
+    add_input_options(denoise)
     denoise.add_argument("--out", type=Path, required=True, help="output folder (denoised .npz + figure panel .png)")
     denoise.add_argument("--method", default="diffusion", choices=["diffusion", "layered", "phase", "none"], help="smoothing (default diffusion)")
     denoise.add_argument("--keep-outliers", action="store_true", help="skip cut-off, spike and flying-pixel removal")
     denoise.add_argument("--edges", default="canny", choices=["canny", "sobel", "prewitt", "roberts"], help="edge detector of the panel")
-    denoise.add_argument("--sensor", choices=sorted(SENSORS), help="override the sensor model")
-    denoise.add_argument("--topic", help="ROS bag topic to read")
-    denoise.add_argument("--quiet", action="store_true", help="no progress bar")
     denoise.set_defaults(handler=_command_denoise)
 
     segment = commands.add_parser("segment", help="split range images into planar segments (labels + thesis Figure 3.5 panel)")
-    segment.add_argument("path", help="file, folder, glob or ROS bag")
+    add_input_options(segment)
     segment.add_argument("--out", type=Path, required=True, help="output folder (labels .npz + figure .png per frame)")
     segment.add_argument("--denoise", default="diffusion", choices=["diffusion", "layered", "phase", "none"], help="denoising first (default diffusion)")
     segment.add_argument("--segmenter", default="region", choices=["region", "nxd"], help="region growing or N x D clustering (default region)")
     segment.add_argument("--show", type=int, default=5, help="planes listed per frame (default 5)")
-    segment.add_argument("--sensor", choices=sorted(SENSORS), help="override the sensor model")
-    segment.add_argument("--topic", help="ROS bag topic to read")
-    segment.add_argument("--quiet", action="store_true", help="no progress bar")
     segment.set_defaults(handler=_command_segment)
 
     lod = commands.add_parser("lod", help="mesh the segments and show the largest surface from fine to coarse (thesis Figure 3.8)")
-    lod.add_argument("path", help="file, folder, glob or ROS bag")
+    add_input_options(lod)
     lod.add_argument("--out", type=Path, required=True, help="output folder (one figure per frame)")
     lod.add_argument("--panels", type=int, default=4, help="levels shown (default 4)")
-    lod.add_argument("--sensor", choices=sorted(SENSORS), help="override the sensor model")
-    lod.add_argument("--topic", help="ROS bag topic to read")
-    lod.add_argument("--quiet", action="store_true", help="no progress bar")
     lod.set_defaults(handler=_command_lod)
 
     bench = commands.add_parser("bench", help="time rangesurf against peer libraries (ratios)")
