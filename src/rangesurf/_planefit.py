@@ -117,13 +117,30 @@ def planes_from_moments(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     rms : (K,) float64
         Root-mean-square point-to-plane distance; NaN likewise.
     """
-    moments = np.atleast_2d(np.asarray(moments, dtype=np.float64))
-    count = moments[:, 0]
-    planes = np.full((len(moments), 4), np.nan)
-    rms = np.full(len(moments), np.nan)
-    usable = count >= 3
-    if not usable.any():
-        return planes, rms
+    moments = np.ascontiguousarray(np.atleast_2d(np.asarray(moments, dtype=np.float64)))
+    return _planes_kernel(moments)
+
+
+@numba.njit(**_JIT)
+def _planes_kernel(moments):  # pragma: no cover - compiled
+    count = moments.shape[0]
+    planes = np.full((count, 4), np.nan)
+    rms = np.full(count, np.nan)
+    normal = np.empty(3)
+    for k in range(count):
+        n = moments[k, 0]
+        if n < 3.0:
+            continue
+        smallest, _ = plane_eigen(moments[k], normal)
+        if smallest < 0.0:
+            continue
+        d = -(normal[0] * moments[k, 1] + normal[1] * moments[k, 2] + normal[2] * moments[k, 3]) / n
+        sign = -1.0 if d < 0.0 else 1.0
+        for j in range(3):
+            planes[k, j] = sign * normal[j]
+        planes[k, 3] = sign * d
+        rms[k] = math.sqrt(smallest)
+    return planes, rms
     m = moments[usable]
     mean = m[:, 1:4] / m[:, :1]
     xx, xy, xz, yy, yz, zz = (m[:, k] / m[:, 0] for k in range(4, 10))
