@@ -364,20 +364,18 @@ def _bevels(labels: np.ndarray, moments: np.ndarray) -> np.ndarray:
     pairs = _neighbour_pairs(labels)
     planes, _ = planes_from_moments(moments)
     normals = planes[:, :3]
-
-    def angle(a: int, b: int) -> float:
-        return math.degrees(math.acos(min(1.0, abs(float(normals[a] @ normals[b])))))
-
     bevels = []
     for sliver in thin:
         around = np.concatenate([pairs[pairs[:, 0] == sliver, 1], pairs[pairs[:, 1] == sliver, 0]])
-        around = [int(a) for a in around if np.isfinite(normals[a]).all()]
-        between = any(
-            angle(a, sliver) > _BEVEL_SLACK and angle(sliver, b) > _BEVEL_SLACK
-            and angle(a, sliver) + angle(sliver, b) <= angle(a, b) + _BEVEL_SLACK
-            for k, a in enumerate(around) for b in around[k + 1 :]
-        )
-        if between:
+        around = around[np.isfinite(normals[around]).all(axis=1)]
+        if len(around) < 2 or not np.isfinite(normals[sliver]).all():
+            continue
+        to_sliver = np.degrees(np.arccos(np.clip(np.abs(normals[around] @ normals[sliver]), 0.0, 1.0)))
+        between = np.degrees(np.arccos(np.clip(np.abs(normals[around] @ normals[around].T), 0.0, 1.0)))
+        # Pairs (a, b) of neighbours with the sliver's plane between theirs, neither close to it.
+        sums = to_sliver[:, None] + to_sliver[None, :]
+        apart = (to_sliver[:, None] > _BEVEL_SLACK) & (to_sliver[None, :] > _BEVEL_SLACK)
+        if (apart & (sums <= between + _BEVEL_SLACK) & ~np.eye(len(around), dtype=bool)).any():
             bevels.append(sliver)
     return np.asarray(bevels, dtype=np.int64)
 
