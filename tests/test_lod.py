@@ -145,3 +145,24 @@ def test_view_level_follows_distance_and_culls():
     assert at(5.0, sideways=100.0) == surface.levels[-1].count  # far off to the side: out of view
     behind = np.diag([1.0, 1.0, -1.0, 1.0])
     assert view_level(surface, behind, **view).count == surface.levels[-1].count
+
+
+@pytest.mark.parametrize("case", ["empty", "one", "three", "collinear", "duplicates"])
+def test_levels_of_degenerate_surfaces(case):
+    from rangesurf.lod import prepare_levels
+
+    vertices = {
+        "empty": np.zeros((0, 3)),
+        "one": np.array([[0.0, 0.0, 2.0]]),
+        "three": np.array([[0.0, 0.0, 2.0], [0.1, 0.0, 2.0], [0.0, 0.1, 2.0]]),
+        "collinear": np.column_stack([np.linspace(0, 1, 10), np.zeros(10), np.full(10, 2.0)]),
+        "duplicates": np.array([[0.0, 0.0, 2.0]] * 5 + [[0.1, 0.0, 2.0], [0.0, 0.1, 2.0]]),
+    }[case]
+    faces = triangulate_in_plane(vertices, [0, 0, -1, 2]) if len(vertices) else np.zeros((0, 3), int)
+    surface = Surface(vertices, faces, np.tile([0, 0, -1.0], (len(vertices), 1)), np.full((len(vertices), 2), -1),
+                      plane=(0, 0, -1, 2))
+    prepare_levels(surface)
+    assert sorted(surface.lod_order.tolist()) == list(range(len(vertices)))
+    coarse = surface.at_level(fraction=0.5)
+    assert coarse.n_vertices <= surface.n_vertices
+    assert coarse.faces.size == 0 or coarse.faces.max() < coarse.n_vertices
