@@ -7,7 +7,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["ranges"]
+__all__ = ["ranges", "pixel_pitch"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -26,3 +26,20 @@ def ranges(points):  # pragma: no cover - compiled
                 distance[i, j] = math.sqrt(squared)
                 valid[i, j] = True
     return distance, valid
+
+
+def pixel_pitch(points: np.ndarray) -> float:
+    """Median angle (radians) between the rays of horizontally neighbouring valid points of a grid.
+
+    From every 8th row: a median needs no more. 1e-3 when no two valid
+    points are neighbours.
+    """
+    points = points[::8]
+    both = np.isfinite(points[:, 1:, 0]) & np.isfinite(points[:, :-1, 0])
+    if not both.any():
+        return 1e-3
+    a = points[:, 1:][both].astype(np.float64)
+    b = points[:, :-1][both].astype(np.float64)
+    a /= np.linalg.norm(a, axis=1, keepdims=True)
+    b /= np.linalg.norm(b, axis=1, keepdims=True)
+    return float(np.median(np.linalg.norm(a - b, axis=1))) or 1e-3

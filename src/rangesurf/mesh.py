@@ -35,7 +35,7 @@ from numpy.typing import ArrayLike
 from scipy.spatial import Delaunay, QhullError
 
 from rangesurf._checks import check_point_grid
-from rangesurf._grid import ranges
+from rangesurf._grid import pixel_pitch, ranges
 from rangesurf.segment import Segmentation
 
 __all__ = [
@@ -219,7 +219,7 @@ def triangulate_segments(
         raise ValueError(f"max_edge_pixels must be > 0, got {max_edge_pixels!r}")
     if not (isinstance(max_view_angle, (int, float)) and 0 < max_view_angle <= 90):
         raise ValueError(f"max_view_angle must be in (0, 90] degrees, got {max_view_angle!r}")
-    pitch = _pixel_pitch(points)
+    pitch = pixel_pitch(points)
     distance, _ = ranges(points)
     faces, face_labels = _grid_faces(
         points, distance, labels.astype(np.int32), float(max_edge_pixels * pitch), math.cos(math.radians(max_view_angle))
@@ -250,19 +250,6 @@ def triangulate_segments(
             )
         )
     return surfaces
-
-
-def _pixel_pitch(points: np.ndarray) -> float:
-    """Median angle (radians) between horizontally neighbouring rays (from every 8th row: a median needs no more)."""
-    points = points[::8]
-    both = np.isfinite(points[:, 1:, 0]) & np.isfinite(points[:, :-1, 0])
-    if not both.any():
-        return 1e-3
-    a = points[:, 1:][both].astype(np.float64)
-    b = points[:, :-1][both].astype(np.float64)
-    a /= np.linalg.norm(a, axis=1, keepdims=True)
-    b /= np.linalg.norm(b, axis=1, keepdims=True)
-    return float(np.median(np.linalg.norm(a - b, axis=1))) or 1e-3
 
 
 @numba.njit(**_JIT)

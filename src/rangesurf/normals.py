@@ -46,7 +46,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_point_grid, check_range_sigma
-from rangesurf._grid import ranges
+from rangesurf._grid import pixel_pitch, ranges
 from rangesurf._planefit import add_point
 from rangesurf._planefit import smallest_eigen as _smallest_eigen
 from rangesurf.frame import PinholeProjection
@@ -359,16 +359,6 @@ def _median_window_noise(box: np.ndarray, ramp: np.ndarray, size: int, usable: n
 # --------------------------------------------------------------------------
 
 
-def _pixel_pitch(points: np.ndarray, distance: np.ndarray, valid: np.ndarray) -> float:
-    """Median angle (radians) between the rays of horizontally neighbouring valid pixels."""
-    both = valid[:, 1:] & valid[:, :-1]
-    if not both.any():
-        return 1e-3
-    a = points[:, 1:][both] / distance[:, 1:][both, None]
-    b = points[:, :-1][both] / distance[:, :-1][both, None]
-    return float(np.median(np.linalg.norm(a - b, axis=1))) or 1e-3
-
-
 def _adaptive_radius(
     moments: np.ndarray,
     points: np.ndarray,
@@ -390,7 +380,7 @@ def _adaptive_radius(
         noise_variance = np.full(distance.shape, float(np.median(unbiased)))
     else:
         noise_variance = np.square(np.nan_to_num(sigma, nan=0.0))
-    footprint = np.maximum(distance * _pixel_pitch(points, distance, valid), 1e-9)
+    footprint = np.maximum(distance * pixel_pitch(points), 1e-9)
     half_width = (_PROBE_RADIUS + 0.5) * footprint
     # Only the excess beyond three standard errors of a chi-square variance estimate is curvature;
     # anything less is what noise alone produces in half the windows.
