@@ -132,8 +132,9 @@ def icp(
         With an organized target: pair each moved source point with the target
         pixel it projects to. Without: closest points via a k-d tree.
     max_correspondence_distance : float
-        Pairs farther apart (metres) are outliers; also the scale of the
-        first iterations' robust weights.
+        Pairs farther apart (metres) are outliers at the finest level; a
+        level that takes every ``step``-th source point searches ``step``
+        times as far. Also bounds the robust weights' scale.
     max_iterations : int
         Per level.
     levels : tuple of int
@@ -201,18 +202,22 @@ def icp(
     converged = False
     pairs = None
     for step in levels:
-        sample = source_points[:: max(int(step), 1)]
+        step = max(int(step), 1)
+        sample = source_points[::step]
+        # Coarse levels also search wider: an initial guess a few degrees off moves far points by more
+        # than the final correspondence distance.
+        distance = max_correspondence_distance * step
         for _ in range(max_iterations):
-            pairs = associate(sample, transform, max_correspondence_distance)
+            pairs = associate(sample, transform, distance)
             if pairs.count < min_inliers:
                 raise ValueError(
-                    f"only {pairs.count} source points found a target point within {max_correspondence_distance} m "
+                    f"only {pairs.count} source points found a target point within {distance} m "
                     f"(need {min_inliers}): the frames do not overlap, one is empty, or the initial pose is far off"
                 )
             if method == "point_to_plane":
-                delta, _ = _point_to_plane_step(pairs, max_correspondence_distance)
+                delta, _ = _point_to_plane_step(pairs, distance)
             else:
-                delta = _point_to_point_step(pairs, max_correspondence_distance)
+                delta = _point_to_point_step(pairs, distance)
             transform = _exp(delta) @ transform
             iterations += 1
             converged = np.linalg.norm(delta[:3]) < tolerance[0] and np.linalg.norm(delta[3:]) < tolerance[1]
@@ -240,8 +245,18 @@ def icp(
     )
 
 
-def pose_error(estimate: ArrayLike, reference: ArrayLike) -> tuple[float, float]:
+def pose_error(estimate: ArrayLike, reference: ArrayLike, *, at: ArrayLike | None = None) -> tuple[float, float]:
     """Rotation (degrees) and translation (metres) between two rigid transforms.
+
+    Parameters
+    ----------
+    estimate, reference : (4, 4) arrays
+        ``T_target_source`` estimated and true.
+    at : (3,) array, optional
+        A point of the source (e.g. the scanned object's centre): the
+        translation error is how far the two transforms put it apart. By
+        default the source origin (the sensor), where a small rotation error
+        of a distant object also shows as translation.
 
     Examples
     --------
@@ -251,9 +266,13 @@ def pose_error(estimate: ArrayLike, reference: ArrayLike) -> tuple[float, float]
     >>> pose_error(shifted, np.eye(4))
     (0.0, 0.01)
     """
-    difference = np.linalg.inv(np.asarray(reference, dtype=np.float64)) @ np.asarray(estimate, dtype=np.float64)
+    estimate = np.asarray(estimate, dtype=np.float64)
+    reference = np.asarray(reference, dtype=np.float64)
+    difference = np.linalg.inv(reference) @ estimate
     cosine = np.clip((np.trace(difference[:3, :3]) - 1) / 2, -1.0, 1.0)
-    return float(np.degrees(np.arccos(cosine))), float(np.linalg.norm(difference[:3, 3]))
+    point = np.zeros(3) if at is None else np.asarray(at, dtype=np.float64)
+    gap = (estimate[:3, :3] @ point + estimate[:3, 3]) - (reference[:3, :3] @ point + reference[:3, 3])
+    return float(np.degrees(np.arccos(cosine))), float(np.linalg.norm(gap))
 
 
 # --------------------------------------------------------------------------

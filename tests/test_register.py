@@ -1,0 +1,133 @@
+"""ICP against simulated poses and the bunny scans' reference alignment."""
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+import rangesurf as rs
+from rangesurf import simulate
+from rangesurf.denoise import denoise_range
+from rangesurf.normals import estimate_normals
+from rangesurf.register import icp, pose_error
+
+BUNNY = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bunny"
+
+
+def corner(n=2000, seed=0):
+    rng = np.random.default_rng(seed)
+    a, b = rng.uniform(0, 1, (2, n))
+    points = np.vstack([np.column_stack([a, b, 0 * a]), np.column_stack([a, 0 * a, b]), np.column_stack([0 * a, a, b])])
+    normals = np.repeat(np.eye(3)[[2, 1, 0]], n, axis=0)
+    return points, normals
+
+
+def moved(points, transform):
+    """The points as seen from a sensor moved by ``transform`` (so that icp should return it)."""
+    return (points - transform[:3, 3]) @ transform[:3, :3]
+
+
+def motion(degrees, translation, axis=(1.0, -1.0, 1.0)):
+    transform = np.eye(4)
+    axis = np.asarray(axis) / np.linalg.norm(axis)
+    transform[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * axis).as_matrix()
+    transform[:3, 3] = translation
+    return transform
+
+
+@pytest.mark.parametrize("method", ["point_to_plane", "point_to_point"])
+def test_corner_motion_is_recovered(method):
+    points, normals = corner()
+    truth = motion(3.0, (0.03, -0.02, 0.01))
+    result = icp(moved(points, truth), points, normals, method=method)
+    rotation, translation = pose_error(result.T_target_source, truth)
+    assert rotation < 0.01 and translation < 1e-4
+    assert result.converged and not result.degenerate
+    assert result.inlier_fraction > 0.95 and result.rmse < 1e-4
+    assert np.isfinite(result.covariance).all() and (np.linalg.eigvalsh(result.covariance) >= 0).all()
+
+
+def test_a_single_plane_is_flagged_degenerate():
+    points, normals = corner()
+    floor = points[:2000]
+    result = icp(moved(floor, motion(0.0, (0.0, 0.0, 0.02))), floor, normals[:2000])
+    assert result.degenerate
+    # Unconstrained: rotation about the floor's normal and the two translations within it.
+    directions = np.abs(result.unconstrained)
+    assert len(directions) == 3
+    assert np.allclose(sorted(np.argmax(directions, axis=1)), [2, 3, 4])
+    # The constrained offset along the normal is still found.
+    assert abs(result.T_target_source[2, 3] - 0.02) < 1e-6
+
+
+@pytest.mark.parametrize("sensor", ["sr3000", "kinect"])
+def test_simulated_frame_to_frame_motion(sensor):
+    """Consecutive simulated frames: within 0.2 degrees and 1 cm of the true relative pose, from odometry or rest."""
+    frames, truths = simulate.simulate_sequence("arena", sensor, 3, seed=6)
+
+    def points_and_normals(frame):
+        smooth = denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)
+        points = (frame.rays * smooth[..., None]).astype(np.float32)
+        sigma = frame.sensor.range_sigma(np.where(np.isfinite(smooth), smooth, 1.0), frame.intensity)
+        return points, estimate_normals(points, projection=frame.sensor.projection, range_sigma=sigma)
+
+    for k in range(len(frames) - 1):
+        source, target = frames[k + 1], frames[k]
+        source_points, _ = points_and_normals(source)
+        target_points, target_normals = points_and_normals(target)
+        truth = np.linalg.inv(truths[k].T_world_sensor) @ truths[k + 1].T_world_sensor
+        for initial in (None, np.linalg.inv(target.pose) @ source.pose):
+            result = icp(source_points, target_points, target_normals, initial=initial,
+                         target_projection=target.sensor.projection)
+            rotation, translation = pose_error(result.T_target_source, truth)
+            assert rotation < 0.2 and translation < 0.01
+            assert not result.degenerate
+
+
+def test_identical_frames_give_the_identity():
+    points, normals = corner()
+    result = icp(points, points, normals)
+    assert pose_error(result.T_target_source, np.eye(4)) == pytest.approx((0.0, 0.0), abs=1e-6)
+    assert result.rmse < 1e-9
+
+
+@pytest.mark.parametrize("source, target", [("bun045", "bun000"), ("bun090", "bun045")])
+def test_bunny_pairs_from_a_perturbed_start(source, target):
+    """10 degrees and 1 cm off at the start, within 0.2 degrees and 0.5 mm of bun.conf at the end."""
+    if not (BUNNY / "bun.conf").is_file():
+        pytest.skip(f"bunny scans not found at {BUNNY} (shared test data lives beside the project)")
+    source_frame, target_frame = rs.load(BUNNY / f"{source}.ply")[0], rs.load(BUNNY / f"{target}.ply")[0]
+    target_sigma = target_frame.sensor.range_sigma(np.where(target_frame.valid, target_frame.range, 1.0))
+    target_normals = estimate_normals(target_frame.points, projection=target_frame.sensor.projection,
+                                      range_sigma=target_sigma)
+    truth = np.linalg.inv(target_frame.reference_pose) @ source_frame.reference_pose
+    centre = np.nanmean(source_frame.points.reshape(-1, 3), axis=0)
+    rotation = Rotation.from_rotvec(np.radians(10) * np.array([0.6, 0.8, 0.0])).as_matrix()
+    perturbation = np.eye(4)
+    perturbation[:3, :3] = rotation
+    perturbation[:3, 3] = centre - rotation @ centre + (0.0, 0.0, 0.01)  # about the scan's centre, plus 1 cm
+    result = icp(source_frame.points, target_frame.points, target_normals, initial=truth @ perturbation,
+                 max_correspondence_distance=0.01)
+    rotation_error, translation_error = pose_error(result.T_target_source, truth, at=centre)
+    assert rotation_error < 0.2 and translation_error < 0.0005
+
+
+def test_bad_input_is_refused():
+    points, normals = corner()
+    with pytest.raises(ValueError, match="target_normals"):
+        icp(points, points)
+    with pytest.raises(ValueError, match="must match"):
+        icp(points, points, normals[:10])
+    with pytest.raises(ValueError, match="method"):
+        icp(points, points, normals, method="generalized")
+    with pytest.raises(ValueError, match="only 0 source points"):
+        icp(np.full((100, 3), np.nan), points, normals)
+    with pytest.raises(ValueError, match="only"):
+        icp(points + 10.0, points, normals)  # no overlap within the correspondence distance
+    with pytest.raises(ValueError, match="initial"):
+        icp(points, points, normals, initial=np.full((4, 4), np.nan))
+    with pytest.raises(ValueError, match="Inf"):
+        icp(np.full((10, 3), np.inf), points, normals)
+    with pytest.raises(ValueError, match="organized"):
+        icp(points, points, normals, target_projection=rs.get_sensor("sr3000").projection)
