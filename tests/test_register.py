@@ -131,3 +131,35 @@ def test_bad_input_is_refused():
         icp(np.full((10, 3), np.inf), points, normals)
     with pytest.raises(ValueError, match="organized"):
         icp(points, points, normals, target_projection=rs.get_sensor("sr3000").projection)
+
+
+def test_3dtk_scans_from_odometry_align_as_well_as_the_reference():
+    data = BUNNY.parent / "uos-3dtk"
+    if not (data / "scan001.3d").is_file():
+        pytest.skip(f"3DTK scans not found at {data} (shared test data lives beside the project)")
+    from scipy.spatial import cKDTree
+
+    first, second = rs.load(data / "scan000.3d")[0], rs.load(data / "scan001.3d")[0]
+
+    def points_and_normals(frame):
+        smooth = denoise_range(frame.range, method="none", sensor=frame.sensor, rays=frame.rays)
+        smooth = np.where((smooth > 1.0) & (smooth < 15.0), smooth, np.nan)  # closer than 1 m: the robot itself
+        points = (frame.rays * smooth[..., None]).astype(np.float32)
+        sigma = frame.sensor.range_sigma(np.where(np.isfinite(smooth), smooth, 1.0))
+        return points, estimate_normals(points, range_sigma=sigma)
+
+    target_points, target_normals = points_and_normals(first)
+    source_points, _ = points_and_normals(second)
+    odometry = np.linalg.inv(first.pose) @ second.pose
+    reference = np.linalg.inv(first.reference_pose) @ second.reference_pose
+    result = icp(source_points, target_points, target_normals, initial=odometry, max_correspondence_distance=0.1)
+    source = source_points.reshape(-1, 3)
+    source = source[np.isfinite(source).all(axis=1)]
+    target = target_points.reshape(-1, 3)
+    tree = cKDTree(target[np.isfinite(target).all(axis=1)])
+
+    def median_gap(transform):
+        return float(np.median(tree.query(source @ transform[:3, :3].T + transform[:3, 3])[0]))
+
+    assert median_gap(result.T_target_source) <= 1.005 * median_gap(reference) < median_gap(odometry)
+    assert not result.degenerate
