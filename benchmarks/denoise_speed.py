@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from rangesurf import denoise, simulate
-from rangesurf.bench import machine_description, time_call
+from rangesurf.bench import machine_description, time_call, write_results
 
 
 def main() -> None:
@@ -41,10 +41,7 @@ def main() -> None:
             raw = 1000 * np.sqrt(np.mean(np.concatenate(raw_errors) ** 2))
             smooth = 1000 * np.sqrt(np.mean(np.concatenate(denoised_errors) ** 2))
             lines.append(f"| {sensor} | {method} | {1000 * per_frame:.2f} | {1 / per_frame:.0f} | {raw:.1f} | {smooth:.1f} |")
-    table = "\n".join(lines)
-    out = Path(__file__).parent / "results" / "denoise_speed.md"
-    out.write_text(table + "\n")
-    print(table)
+    write_results(Path(__file__).parent / "results", "denoise_speed.md", lines)
 
 
 if __name__ == "__main__":

@@ -25,7 +25,7 @@ import numpy as np  # noqa: E402
 from scipy.spatial import cKDTree  # noqa: E402
 
 from rangesurf import simulate  # noqa: E402
-from rangesurf.bench import machine_description  # noqa: E402
+from rangesurf.bench import machine_description, write_results  # noqa: E402
 from rangesurf.lod import build_levels_at, progressive_order  # noqa: E402
 from rangesurf.mesh import boundary_loops, triangulate_segments  # noqa: E402
 from rangesurf.segment import segment_frame  # noqa: E402
@@ -107,10 +107,7 @@ def main() -> None:
                      f"{1000 * r['ours']['rms']:.2f} / {1000 * r['peer']['rms']:.2f} | "
                      f"{1000 * r['ours']['hausdorff']:.1f} / {1000 * r['peer']['hausdorff']:.1f} | "
                      f"{1000 * r['ours']['outline']:.1f} / {1000 * r['peer']['outline']:.1f} |")
-    table = "\n".join(lines)
-    out = Path(__file__).parent / "results" / "lod_quality.md"
-    out.write_text(table + "\n")
-    print(table)
+    write_results(Path(__file__).parent / "results", "lod_quality.md", lines)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from rangesurf import simulate  # noqa: E402
-from rangesurf.bench import machine_description, time_call, time_pair  # noqa: E402
+from rangesurf.bench import machine_description, time_call, time_pair, write_results  # noqa: E402
 from rangesurf.lod import build_levels, progressive_order, select_level  # noqa: E402
 from rangesurf.mesh import Surface, triangulate_in_plane, triangulate_segments  # noqa: E402
 from rangesurf.segment import segment_frame  # noqa: E402
@@ -67,10 +67,7 @@ def main() -> None:
         lines.append(f"| fast_simplification.simplify to 10 % | {surface.n_vertices} vertices | {1e3 * peer:.1f} "
                      f"| progressive_order / simplify (alternating): {ours / peer:.2f}x the time |")
     lines += ["", f"Load average at the end: {os.getloadavg()[0]:.2f}."]
-    table = "\n".join(lines)
-    out = Path(__file__).parent / "results" / "lod_speed.md"
-    out.write_text(table + "\n")
-    print(table)
+    write_results(Path(__file__).parent / "results", "lod_speed.md", lines)
 
 
 if __name__ == "__main__":

@@ -20,7 +20,7 @@ import cv2  # noqa: E402
 import numpy as np  # noqa: E402
 
 from rangesurf import simulate  # noqa: E402
-from rangesurf.bench import machine_description, time_pair  # noqa: E402
+from rangesurf.bench import machine_description, time_pair, write_results  # noqa: E402
 from rangesurf.denoise import denoise_range  # noqa: E402
 from rangesurf.normals import estimate_normals  # noqa: E402
 from rangesurf.register import icp, pose_error  # noqa: E402
@@ -105,10 +105,7 @@ def main() -> None:
             lines.append(f"| {width}x{height} {sensor} | {name} | {values[:, 0].max():.3f} | {1000 * values[:, 1].max():.2f} "
                          f"| {1000 * np.median(values[:, 2]):.1f} | {ratio} |")
     lines += ["", f"Load average at the end: {os.getloadavg()[0]:.2f}."]
-    table = "\n".join(lines)
-    out = Path(__file__).parent / "results" / "registration.md"
-    out.write_text(table + "\n")
-    print(table)
+    write_results(Path(__file__).parent / "results", "registration.md", lines)
 
 
 if __name__ == "__main__":

@@ -7,6 +7,7 @@ plain dicts so that `benchmarks/` can record them and the README quote them.
 
 from __future__ import annotations
 
+import os
 import platform
 import statistics
 import tempfile
@@ -16,7 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["time_call", "time_pair", "benchmark_simulator", "benchmark_readers", "denoising_quality", "run_foundation_benchmarks"]
+__all__ = [
+    "time_call", "time_pair", "benchmark_simulator", "benchmark_readers", "denoising_quality",
+    "run_foundation_benchmarks", "write_results",
+]
 
 
 def time_call(function: Callable[[], object], *, repeats: int = 5, warmup: int = 1) -> float:
@@ -190,6 +194,17 @@ def format_results(results: dict) -> str:
             f"{cell(row.get('speedup_vs_numpy_loadtxt'), 1, 2)}x |"
         )
     return "\n".join(lines).replace("—x", "—")
+
+
+def write_results(folder: str | os.PathLike, name: str, lines: list[str]) -> str:
+    """Join a benchmark's markdown lines, write them atomically to ``folder/name``, print and return them."""
+    from rangesurf.io._common import atomic_write
+
+    table = "\n".join(lines)
+    with atomic_write(Path(folder) / name, "w") as stream:
+        stream.write(table + "\n")
+    print(table)
+    return table
 
 
 def default_data_root() -> Path:
