@@ -230,34 +230,20 @@ def icp(
             if fast:
                 # Depth camera: pairing and normal equations in one compiled pass, no temporaries.
                 information, gradient, residuals = associate.projective_pass(sample, transform, distance, scale)
-                if len(residuals) < min_inliers:
-                    raise ValueError(
-                        f"only {len(residuals)} source points found a target point within {distance} m "
-                        f"(need {min_inliers}): the frames do not overlap, one is empty, or the initial pose is far off"
-                    )
+                _require_pairs(len(residuals), distance, min_inliers)
                 scale = _robust_scale(residuals, distance)
-                damping = 1e-9 * max(np.trace(information), 1e-12)
-                delta = -np.linalg.solve(information + damping * np.eye(6), gradient)
-                transform = _exp(delta) @ transform
-                iterations += 1
-                # Coarse levels only need to get close: their tolerance grows with the step.
-                converged = np.linalg.norm(delta[:3]) < tolerance[0] * step and np.linalg.norm(delta[3:]) < tolerance[1] * step
-                if converged:
-                    break
-                continue
-            pairs = associate(sample, transform, distance)
-            if pairs.count < min_inliers:
-                raise ValueError(
-                    f"only {pairs.count} source points found a target point within {distance} m "
-                    f"(need {min_inliers}): the frames do not overlap, one is empty, or the initial pose is far off"
-                )
-            if method == "point_to_plane":
-                delta, _ = _point_to_plane_step(pairs, distance)
+                delta = _solve(information, gradient)
             else:
-                delta = _point_to_point_step(pairs, distance)
+                pairs = associate(sample, transform, distance)
+                _require_pairs(pairs.count, distance, min_inliers)
+                if method == "point_to_plane":
+                    delta = _point_to_plane_step(pairs, distance)
+                else:
+                    delta = _point_to_point_step(pairs, distance)
             transform = _exp(delta) @ transform
             iterations += 1
-            converged = np.linalg.norm(delta[:3]) < tolerance[0] and np.linalg.norm(delta[3:]) < tolerance[1]
+            # Coarse levels only need to get close: their tolerance grows with the step.
+            converged = np.linalg.norm(delta[:3]) < tolerance[0] * step and np.linalg.norm(delta[3:]) < tolerance[1] * step
             if converged:
                 break
     # Quality at the end, on the finest level's points; the information of every point is about that
@@ -359,10 +345,14 @@ class _Pairs:
             return np.einsum("ij,ij->i", difference, self.normals)
         return np.linalg.norm(difference, axis=1)
 
+    def plane_jacobian(self) -> np.ndarray:
+        """(K, 6) derivatives of the point-to-plane residuals by (rotation vector, translation)."""
+        return np.column_stack([np.cross(self.moved, self.normals), self.normals])
+
     def information(self, method: str, weights: np.ndarray) -> np.ndarray:
         """J^T W J of the pose (rotation vector, translation) at the current estimate."""
         if method == "point_to_plane":
-            jacobian = np.column_stack([np.cross(self.moved, self.normals), self.normals])
+            jacobian = self.plane_jacobian()
             return (jacobian * weights[:, None]).T @ jacobian
         # Point-to-point: three residual rows per pair, J = [-[p]x, I].
         information = np.zeros((6, 6))
@@ -446,18 +436,27 @@ def _tukey(residual: np.ndarray, scale: float) -> np.ndarray:
     return np.where(np.abs(ratio) < 1.0, (1.0 - ratio**2) ** 2, 0.0)
 
 
-def _point_to_plane_step(pairs: _Pairs, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+def _require_pairs(count: int, distance: float, min_inliers: int) -> None:
+    if count < min_inliers:
+        raise ValueError(
+            f"only {count} source points found a target point within {distance} m "
+            f"(need {min_inliers}): the frames do not overlap, one is empty, or the initial pose is far off"
+        )
+
+
+def _solve(information: np.ndarray, gradient: np.ndarray) -> np.ndarray:
+    """The Gauss-Newton step; a tiny damping keeps the unconstrained directions of degenerate scenes still."""
+    damping = 1e-9 * max(np.trace(information), 1e-12)
+    return -np.linalg.solve(information + damping * np.eye(6), gradient)
+
+
+def _point_to_plane_step(pairs: _Pairs, max_distance: float) -> np.ndarray:
     """One Gauss-Newton step of the point-to-plane error (small-angle linearisation)."""
     residual = pairs.residuals("point_to_plane")
     weights = _tukey(residual, _robust_scale(residual, max_distance))
-    jacobian = np.column_stack([np.cross(pairs.moved, pairs.normals), pairs.normals])
+    jacobian = pairs.plane_jacobian()
     weighted = jacobian * weights[:, None]
-    information = weighted.T @ jacobian
-    gradient = weighted.T @ residual
-    # A tiny damping keeps the unconstrained directions of degenerate scenes still instead of singular.
-    damping = 1e-9 * max(np.trace(information), 1e-12)
-    delta = -np.linalg.solve(information + damping * np.eye(6), gradient)
-    return delta, information
+    return _solve(weighted.T @ jacobian, weighted.T @ residual)
 
 
 def _point_to_point_step(pairs: _Pairs, max_distance: float) -> np.ndarray:

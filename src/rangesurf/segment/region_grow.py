@@ -522,21 +522,6 @@ def _fit(moments, region, plane, noise, normal):  # pragma: no cover - compiled
     plane[3] = d
 
 
-@numba.njit(**_JIT, inline="always")
-def _joins(points, normals, distance, sigma, plane, qi, qj, ci, cj, distance_sigmas, cos_angle, depth_jump):  # pragma: no cover - compiled
-    gap = abs(distance[qi, qj] - distance[ci, cj])
-    if gap > depth_jump * min(distance[qi, qj], distance[ci, cj]):
-        return False
-    offset = plane[0] * points[qi, qj, 0] + plane[1] * points[qi, qj, 1] + plane[2] * points[qi, qj, 2] + plane[3]
-    if abs(offset) > distance_sigmas * sigma[qi, qj]:
-        return False
-    if cos_angle > -1.0:
-        agreement = plane[0] * normals[qi, qj, 0] + plane[1] * normals[qi, qj, 1] + plane[2] * normals[qi, qj, 2]
-        if not (agreement >= cos_angle):
-            return False
-    return True
-
-
 @numba.njit(**_JIT)
 def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sigmas, cos_angle, depth_jump, min_size, first_fit):  # pragma: no cover - compiled
     height, width = growable.shape
@@ -582,7 +567,7 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
                     continue
                 if labels[qi, qj] != 0 or not growable[qi, qj]:
                     continue
-                # The join test of _joins, written out with the plane in registers (the hot loop).
+                # Join test: no depth jump, on the plane within the noise, normal agrees (plane in registers).
                 range_q = distance[qi, qj]
                 if abs(range_q - range_c) > depth_jump * min(range_q, range_c):
                     continue
