@@ -7,7 +7,7 @@ from rangesurf.lod import Level, build_levels, distance_level, progressive_order
 from rangesurf.mesh import Surface, boundary_loops, triangulate_in_plane
 
 
-def grid_surface(n, height_of, mask=None, plane=(np.nan,) * 4):
+def grid_surface(n, height_of, mask=None, plane=(np.nan,) * 4, interpolation="shepard"):
     rows, cols = np.mgrid[0:n, 0:n] / (n - 1)
     keep = np.ones(rows.shape, bool) if mask is None else mask(rows, cols)
     x, y = cols[keep], rows[keep]
@@ -15,7 +15,7 @@ def grid_surface(n, height_of, mask=None, plane=(np.nan,) * 4):
     faces = triangulate_in_plane(vertices, [0, 0, -1, 2], max_edge=1.5 / (n - 1))
     surface = Surface(vertices, faces, np.tile([0, 0, -1.0], (len(vertices), 1)), np.full((len(vertices), 2), -1),
                       plane=plane)
-    surface.lod_order, surface.lod_error = progressive_order(surface)
+    surface.lod_order, surface.lod_error = progressive_order(surface, interpolation=interpolation)
     return surface
 
 
@@ -24,10 +24,11 @@ def area(vertices, faces):
     return 0.5 * np.linalg.norm(np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]), axis=1).sum()
 
 
-def test_a_plane_reduces_to_its_outline():
+@pytest.mark.parametrize("interpolation", ["shepard", "sibson"])
+def test_a_plane_reduces_to_its_outline(interpolation):
     """An L-shaped flat patch: the coarsest level is the corners of its outline and covers the same area."""
     surface = grid_surface(21, lambda x, y: np.full(x.shape, 2.0), mask=lambda r, c: (r <= 0.5) | (c <= 0.5),
-                           plane=(0.0, 0.0, -1.0, 2.0))
+                           plane=(0.0, 0.0, -1.0, 2.0), interpolation=interpolation)
     (outline,) = boundary_loops(surface.faces)
     xy = surface.vertices[outline, :2].astype(float)
     before, after = xy - np.roll(xy, 1, axis=0), np.roll(xy, -1, axis=0) - xy
@@ -44,9 +45,10 @@ def test_a_plane_reduces_to_its_outline():
     assert area(kept, coarsest.faces) == pytest.approx(area(surface.vertices.astype(float), surface.faces), rel=1e-6)
 
 
-def test_a_ridge_survives_coarse_levels():
+@pytest.mark.parametrize("interpolation", ["shepard", "sibson"])
+def test_a_ridge_survives_coarse_levels(interpolation):
     """A roof (two planes meeting at a ridge): at 10 % of the vertices the ridge is still there."""
-    surface = grid_surface(61, lambda x, y: 2.0 - 0.2 * np.abs(x - 0.5))
+    surface = grid_surface(61, lambda x, y: 2.0 - 0.2 * np.abs(x - 0.5), interpolation=interpolation)
     level = select_level(build_levels(surface), fraction=0.1)
     kept = surface.lod_order[: level.count]
     vertices = surface.vertices.astype(float)
@@ -64,6 +66,35 @@ def test_a_ridge_survives_coarse_levels():
     ridge_height = 0.1
     assert error.max() < 0.05 * ridge_height
     assert level.error <= error.max() + 1e-9 or level.error < 0.05 * ridge_height
+
+
+def test_sibson_reproduces_a_tilted_plane_from_scattered_neighbours():
+    """Natural-neighbour weights have linear precision, inverse-distance weights do not.
+
+    Jittered vertices on a plane tilted against the surface's reference
+    plane: inside the patch Sibson predicts every height exactly, so the
+    first quarter removed costs nothing; Shepard sees a (false) error.
+    """
+    rng = np.random.default_rng(1)
+    n = 30
+    rows, cols = np.mgrid[0:n, 0:n] / (n - 1)
+    x = cols.ravel() + rng.uniform(-0.3, 0.3, n * n) / (n - 1)
+    y = rows.ravel() + rng.uniform(-0.3, 0.3, n * n) / (n - 1)
+    vertices = np.column_stack([x, y, 2 + 0.3 * x + 0.2 * y])
+    surface = Surface(vertices, triangulate_in_plane(vertices, [0, 0, -1, 2]), np.tile([0, 0, -1.0], (n * n, 1)),
+                      np.full((n * n, 2), -1), plane=(0, 0, -1, 2))
+    first_quarter = {}
+    for interpolation in ("shepard", "sibson"):
+        _, error = progressive_order(surface, interpolation=interpolation)
+        first_quarter[interpolation] = error[::-1][: n * n // 4].max()
+    assert first_quarter["sibson"] < 1e-6
+    assert first_quarter["shepard"] > 100 * first_quarter["sibson"]
+
+
+def test_unknown_interpolation_is_refused():
+    surface = grid_surface(5, lambda x, y: np.full(x.shape, 2.0))
+    with pytest.raises(ValueError, match="interpolation"):
+        progressive_order(surface, interpolation="kriging")
 
 
 def test_order_is_a_permutation_and_errors_grow_towards_the_coarse_end():

@@ -515,14 +515,21 @@ def boundary_loops(faces: ArrayLike) -> list[np.ndarray]:
     if faces.size == 0:
         return []
     directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    # A directed edge is on the boundary when its reverse is not used by any face.
+    # An edge is on the boundary when only one face uses it. Sort the undirected edges with the
+    # direction in the lowest bit (one sort, no search): a boundary edge is a run of length one.
     base = int(faces.max()) + 1
-    codes = np.sort(directed[:, 0] * base + directed[:, 1])
-    reverse = (codes % base) * base + codes // base
-    position = np.minimum(np.searchsorted(codes, reverse), len(codes) - 1)
-    boundary = np.unique(codes[codes[position] != reverse])
+    low, high = directed.min(axis=1), directed.max(axis=1)
+    codes = np.sort(((low * base + high) << 1) | (directed[:, 0] > directed[:, 1]))
+    edges = codes >> 1
+    single = np.ones(len(codes), bool)
+    repeated = edges[1:] == edges[:-1]
+    single[1:] &= ~repeated
+    single[:-1] &= ~repeated
+    boundary, flipped = edges[single], (codes[single] & 1).astype(bool)
+    starts = np.where(flipped, boundary % base, boundary // base)
+    ends = np.where(flipped, boundary // base, boundary % base)
     successors: dict[int, list[int]] = {}
-    for a, b in zip((boundary // base).tolist(), (boundary % base).tolist()):
+    for a, b in zip(starts.tolist(), ends.tolist()):
         successors.setdefault(a, []).append(b)
     loops = []
     while successors:
