@@ -10,7 +10,7 @@ import rangesurf as rs
 from rangesurf import simulate
 from rangesurf.denoise import denoise_range
 from rangesurf.normals import estimate_normals
-from rangesurf.register import icp, pose_error
+from rangesurf.register import compose_covariance, icp, pose_error
 
 BUNNY = Path(__file__).resolve().parents[1].parent / "shared" / "data" / "bunny"
 
@@ -163,3 +163,36 @@ def test_3dtk_scans_from_odometry_align_as_well_as_the_reference():
 
     assert median_gap(result.T_target_source) <= 1.005 * median_gap(reference) < median_gap(odometry)
     assert not result.degenerate
+
+
+def test_compose_covariance_matches_sampled_poses():
+    """Monte Carlo: perturb a world pose and a relative pose by their covariances, compose, and compare."""
+    rng = np.random.default_rng(4)
+    world = np.eye(4)
+    world[:3, :3] = Rotation.from_rotvec([0.3, -0.2, 1.1]).as_matrix()
+    world[:3, 3] = [2.0, -1.0, 0.5]
+    relative = np.eye(4)
+    relative[:3, :3] = Rotation.from_rotvec([0.0, 0.05, 0.1]).as_matrix()
+    relative[:3, 3] = [0.1, 0.0, 0.02]
+    root_world = np.diag([0.01, 0.02, 0.01, 0.03, 0.01, 0.02])
+    root_relative = np.diag([0.02, 0.01, 0.015, 0.01, 0.02, 0.01])
+
+    def perturbed(delta, pose):
+        moved = np.eye(4)
+        moved[:3, :3] = Rotation.from_rotvec(delta[:3]).as_matrix()
+        moved[:3, 3] = delta[3:]
+        return moved @ pose
+
+    mean = world @ relative
+    samples = []
+    for _ in range(20000):
+        composed = perturbed(root_world @ rng.standard_normal(6), world) @ perturbed(root_relative @ rng.standard_normal(6), relative)
+        error = composed @ np.linalg.inv(mean)
+        samples.append(np.r_[Rotation.from_matrix(error[:3, :3]).as_rotvec(), error[:3, 3]])
+    empirical = np.cov(np.asarray(samples).T)
+    predicted = compose_covariance(world, root_world @ root_world, root_relative @ root_relative)
+    assert np.allclose(predicted, empirical, atol=0.1 * np.abs(predicted).max())
+    with pytest.raises(ValueError, match="relative_covariance"):
+        compose_covariance(world, np.eye(6), np.eye(3))
+    unconstrained = np.diag([1e-4] * 5 + [np.inf])
+    assert np.isinf(compose_covariance(np.eye(4), np.zeros((6, 6)), unconstrained)[5, 5])

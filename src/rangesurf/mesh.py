@@ -34,7 +34,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import Delaunay, QhullError
 
-from rangesurf._checks import check_point_grid
+from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf._grid import pixel_pitch, ranges
 from rangesurf.segment import Segmentation
 
@@ -169,6 +169,7 @@ def triangulate_segments(
     max_edge_pixels: float = 4.0,
     max_view_angle: float = 85.0,
     min_faces: int = 1,
+    range_sigma: ArrayLike | None = None,
 ) -> list[Surface]:
     """One grid-triangulated `Surface` per segment of an organized frame.
 
@@ -188,6 +189,9 @@ def triangulate_segments(
         of sight are dropped (a surface seen edge-on is a step).
     min_faces : int
         Segments with fewer triangles give no surface.
+    range_sigma : (H, W) float array, optional
+        Range noise (metres, along the line of sight) of every pixel; each
+        vertex then gets it along its normal as uncertainty ``"UL1"``.
 
     Returns
     -------
@@ -221,6 +225,8 @@ def triangulate_segments(
         raise ValueError(f"max_view_angle must be in (0, 90] degrees, got {max_view_angle!r}")
     pitch = pixel_pitch(points)
     distance, _ = ranges(points)
+    if range_sigma is not None:
+        range_sigma = check_range_sigma(distance, range_sigma)
     faces, face_labels = _grid_faces(
         points, distance, labels.astype(np.int32), float(max_edge_pixels * pitch), math.cos(math.radians(max_view_angle))
     )
@@ -241,6 +247,11 @@ def triangulate_segments(
         else:
             normals = _vertex_normals(vertices, own)
         uncertainty = {}
+        if range_sigma is not None:
+            # Noise along the ray, seen along the normal: sigma |cos(incidence)|.
+            rays = vertices / np.maximum(distance[rows, cols], 1e-12)[:, None]
+            cosine = np.abs(np.einsum("ij,ij->i", rays, normals))
+            uncertainty["UL1"] = (range_sigma[rows, cols] * cosine).astype(np.float32)
         if np.isfinite(segmentation.residuals[label]):
             uncertainty["UL2"] = np.full(len(used), segmentation.residuals[label], np.float32)
         surfaces.append(

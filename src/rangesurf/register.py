@@ -52,7 +52,7 @@ from scipy.spatial.transform import Rotation
 
 from rangesurf.frame import PinholeProjection, check_rigid_transform
 
-__all__ = ["RegistrationResult", "icp", "pose_error", "ICP_METHODS"]
+__all__ = ["RegistrationResult", "icp", "pose_error", "compose_covariance", "ICP_METHODS"]
 
 ICP_METHODS = ("point_to_plane", "point_to_point")
 # Tukey's biweight constant (95 % efficiency at Gaussian noise), in robust standard deviations.
@@ -306,6 +306,56 @@ def pose_error(estimate: ArrayLike, reference: ArrayLike, *, at: ArrayLike | Non
     point = np.zeros(3) if at is None else np.asarray(at, dtype=np.float64)
     gap = (estimate[:3, :3] @ point + estimate[:3, 3]) - (reference[:3, :3] @ point + reference[:3, 3])
     return float(np.degrees(np.arccos(cosine))), float(np.linalg.norm(gap))
+
+
+def compose_covariance(T_world_target: ArrayLike, world_covariance: ArrayLike, relative_covariance: ArrayLike) -> np.ndarray:
+    """Covariance of ``T_world_source = T_world_target @ T_target_source`` from those of its two factors.
+
+    Both covariances are of perturbations applied on the left -- the world
+    pose's in world coordinates, the registration's (`RegistrationResult.covariance`)
+    in the target's -- over (rotation vector, translation); the two are
+    taken as independent. The registration's is carried into world
+    coordinates by the adjoint of ``T_world_target``. Chaining frame-to-frame
+    results this way gives the pose uncertainty of a dead-reckoned
+    trajectory, which grows with every step.
+
+    Returns
+    -------
+    (6, 6) float64
+        In world coordinates; ``inf`` stays ``inf`` (unconstrained directions).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> step = np.diag([0.0, 0.0, 0.0, 1e-4, 1e-4, 1e-4])
+    >>> turned = np.eye(4)
+    >>> turned[:3, :3] = [[0, -1, 0], [1, 0, 0], [0, 0, 1]]
+    >>> np.diag(compose_covariance(turned, step, step)).round(6).tolist()
+    [0.0, 0.0, 0.0, 0.0002, 0.0002, 0.0002]
+    """
+    pose = check_rigid_transform(T_world_target, "T_world_target")
+    covariances = []
+    for name, value in (("world_covariance", world_covariance), ("relative_covariance", relative_covariance)):
+        matrix = np.asarray(value, dtype=np.float64)
+        if matrix.shape != (6, 6) or np.isnan(matrix).any():
+            raise ValueError(f"{name} must be a 6x6 covariance without NaN, got shape {matrix.shape}")
+        covariances.append(matrix)
+    rotation, translation = pose[:3, :3], pose[:3, 3]
+    skew = np.array([[0.0, -translation[2], translation[1]], [translation[2], 0.0, -translation[0]],
+                     [-translation[1], translation[0], 0.0]])
+    adjoint = np.zeros((6, 6))
+    adjoint[:3, :3] = rotation
+    adjoint[3:, :3] = skew @ rotation
+    adjoint[3:, 3:] = rotation
+    relative = covariances[1]
+    if np.isfinite(relative).all():
+        carried = adjoint @ relative @ adjoint.T
+    else:
+        # inf * 0 would give NaN: carry a large finite stand-in, then mark what it reached as unknown.
+        stand_in = np.where(np.isfinite(relative), relative, 1e300)
+        carried = adjoint @ stand_in @ adjoint.T
+        carried = np.where(np.abs(carried) > 1e250, np.inf, carried)
+    return covariances[0] + carried
 
 
 # --------------------------------------------------------------------------

@@ -1,0 +1,436 @@
+"""The global model: every frame's surfaces merged in world coordinates (thesis Section 3.3).
+
+`GlobalModel.add_frame` takes one frame's surfaces (sensor frame) and the
+frame's pose, and for each planar surface finds the model patches it
+continues -- same side facing, normals within ``max_normal_angle``, lying on
+their plane within ``max_plane_distance``, and touching or overlapping their
+cells -- then fuses it into them (`rangesurf.merge.planar`). Patches that a
+surface shows to be one plane are merged. A surface that continues nothing
+starts a new patch. Non-planar surfaces are kept as they are or dropped
+(``nonplanar``); the volumetric path for them is `rangesurf.merge.tsdf`.
+
+The model also keeps the trajectory and a per-frame merge history, and
+saves itself atomically (`save`, `load`), so that a run can resume from
+its last checkpoint without losing any merged frame.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+from numpy.typing import ArrayLike
+
+from rangesurf.frame import check_rigid_transform
+from rangesurf.io._common import FormatError, atomic_path
+from rangesurf.lod import progressive_order
+from rangesurf.merge.planar import CELL_FIELDS, Observations, PlanarPatch
+from rangesurf.mesh import Surface
+
+__all__ = ["GlobalModel", "MergeStep", "NONPLANAR_MODES"]
+
+NONPLANAR_MODES = ("keep", "drop")
+_FORMAT_VERSION = 1
+_UNCONSTRAINED_VARIANCE = 1e4
+
+
+@dataclass(frozen=True)
+class MergeStep:
+    """What `GlobalModel.add_frame` did with one frame.
+
+    Parameters
+    ----------
+    frame : int
+        Index of the frame in the model (0-based).
+    fused : int
+        Planar surfaces fused into existing patches.
+    created : int
+        Planar surfaces that started a new patch.
+    joined : int
+        Patches merged into others because this frame showed them to be one plane.
+    cells_updated, cells_added : int
+        Model vertices averaged with new observations, and vertices added.
+    rejected : int
+        Vertices of fused surfaces left out: too far from the patch's plane.
+    nonplanar : int
+        Non-planar surfaces kept (``nonplanar="keep"``) or dropped.
+    """
+
+    frame: int
+    fused: int
+    created: int
+    joined: int
+    cells_updated: int
+    cells_added: int
+    rejected: int
+    nonplanar: int
+
+
+class GlobalModel:
+    """Surfaces of many registered frames merged into one model, in world coordinates.
+
+    Parameters
+    ----------
+    cell_size : float, optional
+        Spacing (metres) of the patches' vertex grid. By default the median
+        vertex spacing of the first frame's surfaces, at least 5 mm.
+    max_normal_angle : float
+        Degrees: a surface continues a patch only if their normals are this
+        close (and face the same way).
+    max_plane_distance : float, optional
+        Metres: the median distance of a surface's vertices from a patch's
+        plane must stay below this; vertices farther than it are not fused.
+        By default 3 times the surface's median total standard deviation,
+        at least 2 cells.
+    bridge : int
+        Gaps up to ``2 * bridge`` cells are closed when meshing, and a
+        surface within ``bridge + 1`` cells of a patch counts as touching it.
+    min_overlap : int
+        Cells a surface must share with (or have next to) a patch to continue it.
+    nonplanar : {"keep", "drop"}
+        Surfaces without a plane: kept as they are (world frame; they are
+        not fused, so they grow with the frames) or dropped.
+
+    Examples
+    --------
+    The same wall seen twice from 2 m: the second view adds no vertex.
+
+    >>> import numpy as np
+    >>> from rangesurf.mesh import Surface, triangulate_in_plane
+    >>> rows, cols = np.mgrid[0:30, 0:40] * 0.02
+    >>> wall = np.column_stack([cols.ravel(), rows.ravel(), np.full(1200, 2.0)])
+    >>> surface = Surface(wall, triangulate_in_plane(wall, [0, 0, -1, 2.0]), np.tile([0, 0, -1.0], (1200, 1)),
+    ...                   np.full((1200, 2), -1), plane=[0, 0, -1, 2.0])
+    >>> model = GlobalModel(cell_size=0.02)
+    >>> first = model.add_frame([surface], np.eye(4))
+    >>> second = model.add_frame([surface], np.eye(4))
+    >>> first.cells_added, second.cells_added, second.cells_updated, model.n_vertices
+    (1200, 0, 1200, 1200)
+    """
+
+    def __init__(
+        self,
+        *,
+        cell_size: float | None = None,
+        max_normal_angle: float = 10.0,
+        max_plane_distance: float | None = None,
+        bridge: int = 1,
+        min_overlap: int = 3,
+        nonplanar: str = "keep",
+    ) -> None:
+        if cell_size is not None and not (isinstance(cell_size, (int, float)) and cell_size > 0):
+            raise ValueError(f"cell_size must be > 0 metres, got {cell_size!r}")
+        if not 0 < max_normal_angle < 90:
+            raise ValueError(f"max_normal_angle must be in (0, 90) degrees, got {max_normal_angle}")
+        if max_plane_distance is not None and not max_plane_distance > 0:
+            raise ValueError(f"max_plane_distance must be > 0 metres, got {max_plane_distance}")
+        if isinstance(bridge, bool) or not isinstance(bridge, int) or bridge < 0:
+            raise ValueError(f"bridge must be an integer >= 0, got {bridge!r}")
+        if isinstance(min_overlap, bool) or not isinstance(min_overlap, int) or min_overlap < 1:
+            raise ValueError(f"min_overlap must be an integer >= 1, got {min_overlap!r}")
+        if nonplanar not in NONPLANAR_MODES:
+            raise ValueError(f"nonplanar must be one of {NONPLANAR_MODES}, got {nonplanar!r}")
+        self.cell_size = None if cell_size is None else float(cell_size)
+        self.max_normal_angle = float(max_normal_angle)
+        self.max_plane_distance = None if max_plane_distance is None else float(max_plane_distance)
+        self.bridge = bridge
+        self.min_overlap = min_overlap
+        self.nonplanar = nonplanar
+        self.patches: list[PlanarPatch] = []
+        self.others: list[Surface] = []
+        self.poses: list[np.ndarray] = []
+        self.timestamps: list[float] = []
+        self.history: list[MergeStep] = []
+        # id(patch) -> (patch revision, with LOD order, mesh)
+        self._meshes: dict[int, tuple[int, bool, Surface]] = {}
+
+    # ------------------------------------------------------------------
+    # State.
+    # ------------------------------------------------------------------
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.poses)
+
+    @property
+    def n_vertices(self) -> int:
+        """Observed vertices (one per occupied cell) of the planar patches, plus those of kept non-planar surfaces."""
+        return sum(patch.n_cells for patch in self.patches) + sum(surface.n_vertices for surface in self.others)
+
+    def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
+        """Timestamps (N,) and ``T_world_sensor`` poses (N, 4, 4) of the merged frames."""
+        return np.asarray(self.timestamps, np.float64), np.asarray(self.poses, np.float64).reshape(-1, 4, 4)
+
+    # ------------------------------------------------------------------
+    # Merging.
+    # ------------------------------------------------------------------
+
+    def add_frame(
+        self,
+        surfaces: list[Surface],
+        T_world_sensor: ArrayLike,
+        *,
+        covariance: ArrayLike | None = None,
+        timestamp: float | None = None,
+    ) -> MergeStep:
+        """Merge one frame's surfaces into the model.
+
+        Parameters
+        ----------
+        surfaces : list of Surface
+            In the frame's sensor coordinates (`rangesurf.mesh.triangulate_segments`);
+            their ``UL1`` and ``UL2`` uncertainties (metres) weight the fusion
+            where present.
+        T_world_sensor : (4, 4) array
+            The frame's pose.
+        covariance : (6, 6) array, optional
+            Covariance of the pose as a perturbation on the left in world
+            coordinates (rotation vector in radians, translation in metres),
+            as `rangesurf.register.compose_covariance` gives; it becomes each
+            vertex's registration variance along its normal (UL3). None:
+            the pose is taken as exact.
+        timestamp : float, optional
+            Seconds; the frame count by default.
+
+        Returns
+        -------
+        MergeStep
+        """
+        pose = check_rigid_transform(T_world_sensor, "T_world_sensor")
+        pose_covariance = None
+        if covariance is not None:
+            pose_covariance = np.asarray(covariance, dtype=np.float64)
+            if pose_covariance.shape != (6, 6):
+                raise ValueError(f"covariance must be 6x6 (rotation, translation), got shape {pose_covariance.shape}")
+            if np.isnan(pose_covariance).any():
+                raise ValueError("covariance contains NaN")
+        for index, surface in enumerate(surfaces):
+            if not isinstance(surface, Surface):
+                raise TypeError(f"surfaces[{index}] must be a rangesurf.mesh.Surface, got {type(surface).__name__}")
+        frame = self.n_frames
+        if self.cell_size is None:
+            self.cell_size = _default_cell_size(surfaces)
+        counts = dict(fused=0, created=0, joined=0, cells_updated=0, cells_added=0, rejected=0, nonplanar=0)
+        rotation, translation = pose[:3, :3], pose[:3, 3]
+        for surface in surfaces:
+            if surface.n_vertices == 0:
+                continue
+            points = surface.vertices.astype(np.float64) @ rotation.T + translation
+            if not np.isfinite(surface.plane).all():
+                counts["nonplanar"] += 1
+                if self.nonplanar == "keep":
+                    self.others.append(_moved(surface, points, rotation))
+                continue
+            normal = rotation @ surface.plane[:3]
+            scale = np.linalg.norm(normal)
+            plane = np.r_[normal, surface.plane[3] - normal @ translation] / scale
+            observations = _observations(surface, points, plane[:3], pose_covariance)
+            self._merge(plane, observations, frame, counts)
+        self.poses.append(pose.copy())
+        self.timestamps.append(float(frame if timestamp is None else timestamp))
+        step = MergeStep(frame=frame, **counts)
+        self.history.append(step)
+        return step
+
+    def _merge(self, plane: np.ndarray, observations: Observations, frame: int, counts: dict[str, int]) -> None:
+        sigma = float(np.sqrt(np.median(observations.variance)))
+        reach = self.max_plane_distance or max(3.0 * sigma, 2.0 * self.cell_size)
+        cosine = math.cos(math.radians(self.max_normal_angle))
+        candidates = []
+        for index, patch in enumerate(self.patches):
+            if patch.normal @ plane[:3] < cosine:
+                continue
+            if np.median(patch.distance_to(observations.points)) > reach:
+                continue
+            touching = patch.touching(observations.points, self.bridge + 1)
+            if touching >= self.min_overlap:
+                candidates.append((touching, index))
+        if not candidates:
+            patch = PlanarPatch.from_plane(plane, observations.points, self.cell_size)
+            self.patches.append(patch)
+            _, added = patch.fuse(observations, frame)
+            counts["created"] += 1
+            counts["cells_added"] += added
+            return
+        candidates.sort(reverse=True)
+        target = self.patches[candidates[0][1]]
+        joined = [self.patches[index] for _, index in candidates[1:]]
+        for other in joined:
+            target.absorb(other, frame)
+        if joined:
+            self.patches = [patch for patch in self.patches if all(patch is not other for other in joined)]
+            counts["joined"] += len(joined)
+        near = target.distance_to(observations.points) <= reach
+        updated, added = target.fuse(observations.subset(near), frame)
+        counts["fused"] += 1
+        counts["cells_updated"] += updated
+        counts["cells_added"] += added
+        counts["rejected"] += int((~near).sum())
+
+    # ------------------------------------------------------------------
+    # Output.
+    # ------------------------------------------------------------------
+
+    def surfaces(self, *, lod: bool = True) -> list[Surface]:
+        """The model's surfaces (world): one per planar patch, then the kept non-planar ones.
+
+        Parameters
+        ----------
+        lod : bool
+            Give the patch surfaces their progressive order (`rangesurf.lod`);
+            cached per patch until it changes.
+        """
+        result = []
+        for label, patch in enumerate(self.patches, start=1):
+            cached = self._meshes.get(id(patch))
+            if cached is not None and cached[0] == patch.revision and (cached[1] or not lod):
+                surface = cached[2]
+            else:
+                surface = patch.surface(bridge=self.bridge, label=label)
+                if lod and surface.n_vertices:
+                    surface.lod_order, surface.lod_error = progressive_order(surface)
+                self._meshes[id(patch)] = (patch.revision, lod, surface)
+            surface.segment = label
+            result.append(surface)
+        live = {id(patch) for patch in self.patches}
+        self._meshes = {key: value for key, value in self._meshes.items() if key in live}
+        return result + list(self.others)
+
+    # ------------------------------------------------------------------
+    # Persistence.
+    # ------------------------------------------------------------------
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write the whole model to one ``.npz`` file, atomically (temporary file, then rename).
+
+        A crash during the write leaves the previous checkpoint in place.
+        """
+        path = Path(path)
+        if path.suffix != ".npz":
+            raise ValueError(f"model checkpoints are .npz files, got {path.name!r}")
+        settings = dict(
+            cell_size=self.cell_size, max_normal_angle=self.max_normal_angle, max_plane_distance=self.max_plane_distance,
+            bridge=self.bridge, min_overlap=self.min_overlap, nonplanar=self.nonplanar,
+        )
+        arrays: dict[str, np.ndarray] = {
+            "format_version": np.array(_FORMAT_VERSION),
+            "settings": np.array(json.dumps(settings)),
+            "history": np.array(json.dumps([asdict(step) for step in self.history])),
+            "poses": np.asarray(self.poses, np.float64).reshape(-1, 4, 4),
+            "timestamps": np.asarray(self.timestamps, np.float64),
+            "patch_origins": np.asarray([patch.origin for patch in self.patches], np.float64).reshape(-1, 3),
+            "patch_axes": np.asarray([patch.axes for patch in self.patches], np.float64).reshape(-1, 3, 3),
+            "patch_cell_sizes": np.asarray([patch.cell_size for patch in self.patches], np.float64),
+            "patch_cells": np.cumsum([0] + [patch.n_cells for patch in self.patches]).astype(np.int64),
+            "patch_frame_counts": np.cumsum([0] + [len(patch.frames) for patch in self.patches]).astype(np.int64),
+            "keys": _concatenate([patch.keys for patch in self.patches], np.int64),
+            "patch_frames": _concatenate([np.asarray(patch.frames, np.int64) for patch in self.patches], np.int64),
+        }
+        for name in CELL_FIELDS:
+            arrays[f"cells_{name}"] = _concatenate([patch.sums[name] for patch in self.patches], np.float64)
+        for index, surface in enumerate(self.others):
+            for name in ("vertices", "faces", "normals", "pixels", "plane"):
+                arrays[f"other{index}_{name}"] = getattr(surface, name)
+            arrays[f"other{index}_segment"] = np.array(surface.segment)
+            for level, values in surface.uncertainty.items():
+                arrays[f"other{index}_uncertainty_{level}"] = values
+        arrays["n_others"] = np.array(len(self.others))
+        with atomic_path(path) as temporary:
+            np.savez(temporary, **arrays)
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> GlobalModel:
+        """Read a model written by `save`.
+
+        Raises
+        ------
+        FormatError
+            The file is not a rangesurf model checkpoint (naming the field).
+        """
+        path = Path(path)
+        try:
+            archive = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as error:
+            raise FormatError(path, f"not a readable .npz model checkpoint ({error})") from None
+        with archive:
+            def field(name: str) -> np.ndarray:
+                if name not in archive.files:
+                    raise FormatError(path, "missing from the model checkpoint", where=f"field {name!r}")
+                return archive[name]
+
+            version = int(field("format_version"))
+            if version != _FORMAT_VERSION:
+                raise FormatError(path, f"model format version {version}, this rangesurf reads {_FORMAT_VERSION}",
+                                  where="field 'format_version'")
+            model = cls(**json.loads(str(field("settings"))))
+            model.poses = [pose for pose in field("poses")]
+            model.timestamps = field("timestamps").tolist()
+            model.history = [MergeStep(**step) for step in json.loads(str(field("history")))]
+            cells, frame_counts = field("patch_cells"), field("patch_frame_counts")
+            keys, frames = field("keys"), field("patch_frames")
+            sums = {name: field(f"cells_{name}") for name in CELL_FIELDS}
+            for index, (origin, axes, cell_size) in enumerate(zip(field("patch_origins"), field("patch_axes"), field("patch_cell_sizes"))):
+                cell_slice = slice(int(cells[index]), int(cells[index + 1]))
+                model.patches.append(PlanarPatch(
+                    origin=origin, axes=axes, cell_size=float(cell_size), keys=keys[cell_slice],
+                    sums={name: values[cell_slice].copy() for name, values in sums.items()},
+                    frames=frames[int(frame_counts[index]) : int(frame_counts[index + 1])].tolist(),
+                ))
+            for index in range(int(field("n_others"))):
+                uncertainty = {level: field(f"other{index}_uncertainty_{level}") for level in ("UL1", "UL2", "UL3", "UL4")
+                               if f"other{index}_uncertainty_{level}" in archive.files}
+                model.others.append(Surface(
+                    *(field(f"other{index}_{name}") for name in ("vertices", "faces", "normals", "pixels")),
+                    plane=field(f"other{index}_plane"), segment=int(field(f"other{index}_segment")), uncertainty=uncertainty,
+                ))
+        if len(model.timestamps) != len(model.poses) or len(model.history) != len(model.poses):
+            raise FormatError(path, f"{len(model.poses)} poses, {len(model.timestamps)} timestamps and "
+                              f"{len(model.history)} history entries disagree", where="field 'poses'")
+        return model
+
+
+def _concatenate(parts: list[np.ndarray], dtype: type) -> np.ndarray:
+    return np.concatenate(parts).astype(dtype) if parts else np.zeros(0, dtype)
+
+
+def _default_cell_size(surfaces: list[Surface]) -> float:
+    """Median length of the surfaces' edges (their vertex spacing), at least 5 mm."""
+    lengths = []
+    for surface in surfaces:
+        if surface.n_faces:
+            corners = surface.vertices[surface.faces[:, :2]].astype(np.float64)
+            lengths.append(np.linalg.norm(corners[:, 1] - corners[:, 0], axis=1))
+    if not lengths:
+        return 0.01
+    return max(float(np.median(np.concatenate(lengths))), 0.005)
+
+
+def _observations(surface: Surface, points: np.ndarray, normal: np.ndarray, covariance: np.ndarray | None) -> Observations:
+    count = surface.n_vertices
+    zero = np.zeros(count)
+    noise = surface.uncertainty["UL1"].astype(np.float64) ** 2 if "UL1" in surface.uncertainty else zero
+    fit = surface.uncertainty["UL2"].astype(np.float64) ** 2 if "UL2" in surface.uncertainty else zero
+    registration = zero
+    if covariance is not None:
+        # A left perturbation (w, t) moves p by w x p + t; along the normal n that is w . (p x n) + t . n.
+        jacobian = np.hstack([np.cross(points, normal), np.broadcast_to(normal, points.shape)])
+        # Unconstrained directions of a degenerate registration (inf) count as 100 m (rad) standard
+        # deviations: vertices they move get next to no weight, vertices they do not move are unaffected.
+        bounded = np.where(np.isfinite(covariance), covariance, _UNCONSTRAINED_VARIANCE)
+        registration = np.einsum("ij,jk,ik->i", jacobian, bounded, jacobian)
+    noise = np.nan_to_num(noise, nan=0.0)
+    fit = np.nan_to_num(fit, nan=0.0)
+    return Observations(points, noise, fit, np.maximum(registration, 0.0))
+
+
+def _moved(surface: Surface, points: np.ndarray, rotation: np.ndarray) -> Surface:
+    return Surface(
+        vertices=points, faces=surface.faces, normals=surface.normals.astype(np.float64) @ rotation.T,
+        pixels=surface.pixels, plane=surface.plane, segment=surface.segment,
+        uncertainty={level: values.copy() for level, values in surface.uncertainty.items()},
+    )

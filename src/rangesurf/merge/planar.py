@@ -1,0 +1,337 @@
+"""Fusion of planar surfaces seen in many frames into one patch per plane (thesis Section 3.3).
+
+A `PlanarPatch` is a plane with a fixed frame (origin and axes u, v, n in
+world coordinates) and a regular grid of cells over it. Every observed
+vertex falls into one cell, and each cell keeps uncertainty-weighted sums of
+what fell into it: the in-plane position, the height along n, its square,
+and the noise, fit and registration variances. So:
+
+* vertices seen again are **averaged** with their counterparts, weighted by
+  their inverse variance (the thesis: "averaging close vertices");
+* vertices with no counterpart **add** new cells;
+* overlap leaves no double layer and needs no clipping (Turk & Levoy's
+  zippering), because two observations of one spot share a cell;
+* the vertex count grows with the surface area seen, never with the number
+  of frames;
+* small gaps between neighbouring parts (up to ``bridge`` cells) are closed
+  when the mesh is made (Soucy & Laurendeau's joining of neighbours), with
+  vertices on the fitted plane whose uncertainty says they were not seen.
+
+The patch's mesh is a grid triangulation of its occupied cells, made on
+demand (`PlanarPatch.surface`), with the per-vertex uncertainty levels
+UL1 (fused sensor noise), UL2 (patch fit) and UL3 (registration and the
+disagreement of the fused observations).
+
+References
+----------
+.. [1] G. Turk and M. Levoy, "Zippered polygon meshes from range images",
+   SIGGRAPH 1994.
+.. [2] M. Soucy and D. Laurendeau, "A general surface approach to the
+   integration of a set of range views", IEEE TPAMI 17(4), 1995.
+.. [3] The reference thesis, Section 3.3 (``shared/reference/thesis.md``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from rangesurf.mesh import Surface, _grid_faces
+
+__all__ = ["PlanarPatch", "Observations", "CELL_FIELDS"]
+
+# Grid coordinates are packed into one non-negative int64 key: (column + OFFSET) << 32 | (row + OFFSET).
+_OFFSET = 1 << 30
+# Per-cell sums, all weighted by the observation weight w = 1 / (total variance) except `information`
+# (sum of 1 / sensor variance) and `count`.
+CELL_FIELDS = ("weight", "u", "v", "h", "hh", "noise", "fit", "registration", "information", "count")
+
+
+@dataclass
+class Observations:
+    """Vertices of one frame's surface on their way into a patch (world frame).
+
+    Parameters
+    ----------
+    points : (N, 3) float64
+        World coordinates.
+    noise, fit, registration : (N,) float64
+        Variances (m^2) along the normal: sensor noise (UL1 squared), patch
+        fit (UL2 squared), registration (from the pose covariance).
+    """
+
+    points: np.ndarray
+    noise: np.ndarray
+    fit: np.ndarray
+    registration: np.ndarray
+
+    @property
+    def variance(self) -> np.ndarray:
+        return self.noise + self.fit + self.registration
+
+    def subset(self, keep: np.ndarray) -> Observations:
+        return Observations(self.points[keep], self.noise[keep], self.fit[keep], self.registration[keep])
+
+
+def _pack(columns: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    return ((columns.astype(np.int64) + _OFFSET) << 32) | (rows.astype(np.int64) + _OFFSET)
+
+
+def _unpack(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    return (keys >> 32) - _OFFSET, (keys & 0xFFFFFFFF) - _OFFSET
+
+
+@dataclass
+class PlanarPatch:
+    """One planar surface of the global model: a plane frame and the cells observed on it.
+
+    Parameters
+    ----------
+    origin : (3,) float64
+        A point of the plane (world).
+    axes : (3, 3) float64
+        Rows u, v, n: in-plane axes and the normal (world, right-handed);
+        the normal faces the sensor that first saw the patch.
+    cell_size : float
+        Grid spacing in metres.
+    keys : (K,) int64
+        Packed grid coordinates of the occupied cells, sorted.
+    sums : dict of str -> (K,) float64
+        The per-cell sums of `CELL_FIELDS`.
+    frames : list of int
+        Frames that contributed, in order.
+    """
+
+    origin: np.ndarray
+    axes: np.ndarray
+    cell_size: float
+    keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    sums: dict[str, np.ndarray] = field(default_factory=dict)
+    frames: list[int] = field(default_factory=list)
+    # Bumped by every change of the cells, so that meshes and plane fits made from them can be cached.
+    revision: int = field(default=0, compare=False)
+    _plane: tuple[int, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.origin = np.asarray(self.origin, np.float64).reshape(3)
+        self.axes = np.asarray(self.axes, np.float64).reshape(3, 3)
+        self.keys = np.asarray(self.keys, np.int64).reshape(-1)
+        for name in CELL_FIELDS:
+            self.sums[name] = np.asarray(self.sums.get(name, np.zeros(len(self.keys))), np.float64).reshape(-1)
+            if len(self.sums[name]) != len(self.keys):
+                raise ValueError(f"patch cell field {name!r} has {len(self.sums[name])} values for {len(self.keys)} cells")
+
+    @classmethod
+    def from_plane(cls, plane: np.ndarray, points: np.ndarray, cell_size: float) -> PlanarPatch:
+        """An empty patch on ``plane`` (world, ``n . p + d = 0``, n facing the sensor), centred on ``points``."""
+        normal = np.asarray(plane[:3], np.float64)
+        scale = np.linalg.norm(normal)
+        normal, offset = normal / scale, float(plane[3]) / scale
+        centre = points.mean(axis=0)
+        origin = centre - (normal @ centre + offset) * normal
+        # u horizontal where possible (world z up), so that walls have rows along the vertical.
+        helper = np.array([0.0, 0.0, 1.0]) if abs(normal[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        u = np.cross(helper, normal)
+        u /= np.linalg.norm(u)
+        v = np.cross(normal, u)
+        return cls(origin=origin, axes=np.vstack([u, v, normal]), cell_size=float(cell_size))
+
+    # ------------------------------------------------------------------
+    # Geometry.
+    # ------------------------------------------------------------------
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.keys)
+
+    @property
+    def normal(self) -> np.ndarray:
+        return self.axes[2]
+
+    def local(self, points: np.ndarray) -> np.ndarray:
+        """(N, 3) world points as (u, v, h) in the patch frame."""
+        return (np.asarray(points, np.float64) - self.origin) @ self.axes.T
+
+    def cell_means(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Fused (u, v, h) of every cell."""
+        weight = self.sums["weight"]
+        return self.sums["u"] / weight, self.sums["v"] / weight, self.sums["h"] / weight
+
+    def fitted_plane(self) -> np.ndarray:
+        """Height over the patch plane as ``h = a u + b v + c``, weighted least squares over the cells: (a, b, c)."""
+        if self._plane is not None and self._plane[0] == self.revision:
+            return self._plane[1]
+        solution = np.zeros(3)
+        if self.n_cells >= 3:
+            u, v, h = self.cell_means()
+            root = np.sqrt(self.sums["weight"])
+            design = np.column_stack([u, v, np.ones_like(u)]) * root[:, None]
+            solution, *_ = np.linalg.lstsq(design, h * root, rcond=None)
+        self._plane = (self.revision, solution)
+        return solution
+
+    def world_plane(self) -> np.ndarray:
+        """The fitted plane in world coordinates, ``(nx, ny, nz, d)`` with the normal facing like the patch's."""
+        a, b, c = self.fitted_plane()
+        # h - a u - b v - c = 0 in the patch frame.
+        local_normal = np.array([-a, -b, 1.0])
+        normal = local_normal @ self.axes
+        scale = np.linalg.norm(normal)
+        offset = -c - normal @ self.origin
+        return np.r_[normal, offset] / scale
+
+    def occupancy(self, margin: int = 0) -> tuple[np.ndarray, int, int]:
+        """Occupied cells as an image (rows v, columns u) with ``margin`` empty cells around; and its origin cell."""
+        columns, rows = _unpack(self.keys)
+        column0, row0 = int(columns.min()) - margin, int(rows.min()) - margin
+        image = np.zeros((int(rows.max()) - row0 + 1 + margin, int(columns.max()) - column0 + 1 + margin), np.uint8)
+        image[rows - row0, columns - column0] = 1
+        return image, column0, row0
+
+    def distance_to(self, points: np.ndarray) -> np.ndarray:
+        """Distance of world points from the fitted plane."""
+        plane = self.world_plane()
+        return np.abs(np.asarray(points, np.float64) @ plane[:3] + plane[3])
+
+    def touching(self, points: np.ndarray, reach: int) -> int:
+        """How many of the points' cells are occupied, or within ``reach`` cells of an occupied one."""
+        if self.n_cells == 0 or len(points) == 0:
+            return 0
+        image, column0, row0 = self.occupancy(margin=reach)
+        if reach > 0:
+            image = cv2.dilate(image, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8))
+        local = self.local(points)
+        columns = np.floor(local[:, 0] / self.cell_size).astype(np.int64) - column0
+        rows = np.floor(local[:, 1] / self.cell_size).astype(np.int64) - row0
+        inside = (columns >= 0) & (rows >= 0) & (columns < image.shape[1]) & (rows < image.shape[0])
+        return int(image[rows[inside], columns[inside]].sum())
+
+    # ------------------------------------------------------------------
+    # Fusion.
+    # ------------------------------------------------------------------
+
+    def fuse(self, observations: Observations, frame: int) -> tuple[int, int]:
+        """Add observed vertices to their cells; returns (cells updated, cells added)."""
+        if len(observations.points) == 0:
+            return 0, 0
+        local = self.local(observations.points)
+        weight = 1.0 / np.maximum(observations.variance, 1e-12)
+        contributions = {
+            "weight": weight, "u": weight * local[:, 0], "v": weight * local[:, 1], "h": weight * local[:, 2],
+            "hh": weight * local[:, 2] ** 2, "noise": weight * observations.noise, "fit": weight * observations.fit,
+            "registration": weight * observations.registration,
+            "information": 1.0 / np.maximum(observations.noise, 1e-12), "count": np.ones(len(local)),
+        }
+        return self._accumulate(local, contributions, frame)
+
+    def absorb(self, other: PlanarPatch, frame: int) -> tuple[int, int]:
+        """Fuse another patch's cells into this one (two patches found to be one plane).
+
+        Each of the other's cells moves, with all its sums, into the cell
+        of this patch that its fused point falls in; its heights' spread is
+        kept, so the disagreement (UL3) survives the move.
+        """
+        if other.n_cells == 0:
+            return 0, 0
+        u, v, h = other.cell_means()
+        local = self.local(other.origin + np.column_stack([u, v, h]) @ other.axes)
+        weight = other.sums["weight"]
+        spread = np.maximum(other.sums["hh"] - other.sums["h"] ** 2 / weight, 0.0)
+        contributions = {name: other.sums[name] for name in ("weight", "noise", "fit", "registration", "information", "count")}
+        contributions.update(u=weight * local[:, 0], v=weight * local[:, 1], h=weight * local[:, 2],
+                             hh=weight * local[:, 2] ** 2 + spread)
+        result = self._accumulate(local, contributions, frame)
+        self.frames = sorted(set(self.frames) | set(other.frames))
+        return result
+
+    def _accumulate(self, local: np.ndarray, contributions: dict[str, np.ndarray], frame: int) -> tuple[int, int]:
+        """Add per-point sums to the cells the (u, v, h) points fall in; new cells are inserted in key order."""
+        keys = _pack(np.floor(local[:, 0] / self.cell_size), np.floor(local[:, 1] / self.cell_size))
+        unique, inverse = np.unique(keys, return_inverse=True)
+        totals = {name: np.bincount(inverse, weights=contributions[name], minlength=len(unique)) for name in CELL_FIELDS}
+        position = np.searchsorted(self.keys, unique)
+        known = position < len(self.keys)
+        known[known] = self.keys[position[known]] == unique[known]
+        for name in CELL_FIELDS:
+            # Unique keys: each known cell is hit once, so plain indexed addition is safe.
+            self.sums[name][position[known]] += totals[name][known]
+        fresh = ~known
+        self.keys = np.insert(self.keys, position[fresh], unique[fresh])
+        for name in CELL_FIELDS:
+            self.sums[name] = np.insert(self.sums[name], position[fresh], totals[name][fresh])
+        if not self.frames or self.frames[-1] != frame:
+            self.frames.append(frame)
+        self.revision += 1
+        return int(known.sum()), int(fresh.sum())
+
+    # ------------------------------------------------------------------
+    # Mesh.
+    # ------------------------------------------------------------------
+
+    def surface(self, *, bridge: int = 1, label: int = 0) -> Surface:
+        """The patch as a triangulated `Surface` (world), one vertex per cell, with UL1-UL3.
+
+        Parameters
+        ----------
+        bridge : int
+            Gaps up to ``2 * bridge`` cells wide are closed (morphological
+            closing of the occupied cells); the vertices filling them lie on
+            the fitted plane and get UL3 = the gap's half width, since
+            nothing was seen there.
+        label : int
+            Stored as the surface's ``segment``.
+        """
+        if self.n_cells == 0:
+            return Surface(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 2)))
+        image, column0, row0 = self.occupancy(margin=bridge)
+        observed = image.astype(bool)
+        if bridge > 0:
+            kernel = np.ones((2 * bridge + 1, 2 * bridge + 1), np.uint8)
+            # Zero outside: OpenCV's default border would let the erosion keep cells on the image edge.
+            image = cv2.morphologyEx(image, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
+        filled = image.astype(bool) & ~observed
+        columns, rows = _unpack(self.keys)
+        u, v, h = self.cell_means()
+        weight = self.sums["weight"]
+        spread = np.maximum(self.sums["hh"] / weight - h**2, 0.0)
+        noise_mean = self.sums["noise"] / weight
+        ul1 = np.sqrt(1.0 / self.sums["information"])
+        ul2 = np.sqrt(self.sums["fit"] / weight)
+        # Registration: the weighted mean variance of the observations' poses; merging: how much the
+        # fused heights disagree beyond what the sensor noise explains.
+        ul3 = np.sqrt(self.sums["registration"] / weight + np.maximum(spread - noise_mean, 0.0))
+        fill_rows, fill_columns = np.nonzero(filled)
+        a, b, c = self.fitted_plane()
+        fill_u = (fill_columns + column0 + 0.5) * self.cell_size
+        fill_v = (fill_rows + row0 + 0.5) * self.cell_size
+        fill_h = a * fill_u + b * fill_v + c
+        all_u, all_v, all_h = np.r_[u, fill_u], np.r_[v, fill_v], np.r_[h, fill_h]
+        grid_rows = np.r_[rows - row0, fill_rows]
+        grid_columns = np.r_[columns - column0, fill_columns]
+        count = len(all_u)
+        points = self.origin + np.column_stack([all_u, all_v, all_h]) @ self.axes
+        # Grid triangulation of the cells (mesh._grid_faces with the step tests switched off).
+        grid = np.full(image.shape + (3,), np.nan, np.float32)
+        grid[grid_rows, grid_columns] = points
+        labels = np.zeros(image.shape, np.int32)
+        labels[grid_rows, grid_columns] = 1
+        faces, _ = _grid_faces(grid, np.ones(image.shape, np.float32), labels, np.inf, 0.0)
+        index = np.full(image.shape, -1, np.int64)
+        index[grid_rows, grid_columns] = np.arange(count)
+        faces = index.reshape(-1)[faces]
+        if len(faces):
+            corners = points[faces]
+            facing = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]) @ self.normal
+            faces[facing < 0] = faces[facing < 0][:, ::-1]
+        gap = bridge * self.cell_size
+        fill_ul1 = np.full(len(fill_u), np.median(ul1) if len(ul1) else 0.0)
+        fill_ul2 = np.full(len(fill_u), np.median(ul2) if len(ul2) else 0.0)
+        uncertainty = {
+            "UL1": np.r_[ul1, fill_ul1], "UL2": np.r_[ul2, fill_ul2], "UL3": np.r_[ul3, np.full(len(fill_u), gap)],
+        }
+        return Surface(
+            vertices=points, faces=faces, normals=np.tile(self.world_plane()[:3], (count, 1)),
+            pixels=np.full((count, 2), -1), plane=self.world_plane(), segment=label, uncertainty=uncertainty,
+        )

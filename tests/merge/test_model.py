@@ -1,0 +1,196 @@
+"""The global model against simulated scenes with known planes and poses."""
+
+import numpy as np
+import pytest
+
+from rangesurf import simulate
+from rangesurf.io import FormatError
+from rangesurf.merge import GlobalModel
+from rangesurf.mesh import Surface, triangulate_in_plane, triangulate_segments
+from rangesurf.segment import segment_frame
+
+
+def wall(noise=0.0, seed=0, offset=0.0, size=(30, 40), spacing=0.02, sigma=None):
+    """A flat wall 2 m in front of the sensor (z forward), as one surface with known noise."""
+    rng = np.random.default_rng(seed)
+    rows, cols = np.mgrid[0 : size[0], 0 : size[1]] * spacing
+    count = rows.size
+    depth = 2.0 + offset + noise * rng.standard_normal(count)
+    vertices = np.column_stack([cols.ravel(), rows.ravel(), depth])
+    uncertainty = {} if sigma is None else {"UL1": np.full(count, sigma)}
+    return Surface(vertices, triangulate_in_plane(vertices, [0, 0, -1, 2.0]), np.tile([0, 0, -1.0], (count, 1)),
+                   np.full((count, 2), -1), plane=[0, 0, -1, 2.0 + offset], uncertainty=uncertainty)
+
+
+def heights(model):
+    (surface,) = model.surfaces(lod=False)
+    return surface.vertices[:, 2].astype(np.float64) - 2.0, surface
+
+
+def test_repeated_views_average_the_noise_and_add_no_vertex():
+    model = GlobalModel(cell_size=0.02)
+    sigma = 0.005
+    for seed in range(16):
+        model.add_frame([wall(sigma, seed, sigma=sigma)], np.eye(4))
+        assert model.n_vertices == 1200
+    error, surface = heights(model)
+    # 16 equal observations: the fused heights scatter sigma / 4, and UL1 says so.
+    assert np.std(error) == pytest.approx(sigma / 4, rel=0.15)
+    assert np.median(surface.uncertainty["UL1"]) == pytest.approx(sigma / 4, rel=0.01)
+    # They agree within their noise, so merging adds (almost) no uncertainty.
+    assert np.median(surface.uncertainty["UL3"]) < sigma / 4
+
+
+def test_disagreeing_views_raise_ul3():
+    """Two exact views 3 cm apart (a registration error): the fused wall sits between and UL3 says 1.5 cm."""
+    model = GlobalModel(cell_size=0.02, max_plane_distance=0.1)
+    model.add_frame([wall(sigma=0.001)], np.eye(4))
+    model.add_frame([wall(sigma=0.001, offset=0.03)], np.eye(4))
+    error, surface = heights(model)
+    assert np.allclose(error, 0.015, atol=1e-6)
+    assert np.median(surface.uncertainty["UL3"]) == pytest.approx(0.015, rel=0.01)
+
+
+def test_pose_covariance_becomes_registration_uncertainty():
+    """A pose uncertain by 1 cm along the wall's normal gives its vertices UL3 = 1 cm; sideways, nothing."""
+    along_normal, sideways = np.zeros((6, 6)), np.zeros((6, 6))
+    along_normal[5, 5] = sideways[3, 3] = 0.01**2
+    for covariance, expected in ((along_normal, 0.01), (sideways, 0.0)):
+        model = GlobalModel(cell_size=0.02)
+        model.add_frame([wall(sigma=0.001)], np.eye(4), covariance=covariance)
+        _, surface = heights(model)
+        assert np.allclose(surface.uncertainty["UL3"], expected, atol=1e-6)
+
+
+def test_overlapping_views_zipper_into_one_patch_that_grows_with_area():
+    """Two views of one wall, shifted sideways by half its width: one patch, 1.5 walls of vertices."""
+    model = GlobalModel(cell_size=0.02)
+    model.add_frame([wall(sigma=0.001)], np.eye(4))
+    shifted = np.eye(4)
+    shifted[0, 3] = 0.4
+    step = model.add_frame([wall(sigma=0.001)], shifted)
+    assert (step.fused, step.created) == (1, 0)
+    assert len(model.patches) == 1
+    assert model.n_vertices == 30 * 60
+    (surface,) = model.surfaces(lod=False)
+    assert surface.area() == pytest.approx(0.58 * 1.18, rel=0.02)
+
+
+def test_a_gap_of_two_cells_is_bridged_and_marked_uncertain():
+    model = GlobalModel(cell_size=0.02, bridge=1)
+    left = wall(size=(30, 20), sigma=0.001)
+    model.add_frame([left], np.eye(4))
+    shifted = np.eye(4)
+    shifted[0, 3] = 0.42  # one empty column of cells between the halves
+    model.add_frame([left], shifted)
+    assert len(model.patches) == 1
+    (surface,) = model.surfaces(lod=False)
+    bridged = np.isclose(surface.uncertainty["UL3"], 0.02)
+    assert bridged.sum() == 30  # the missing column, on the plane
+    assert np.allclose(surface.vertices[bridged, 2], 2.0, atol=1e-4)
+    assert surface.area() == pytest.approx(0.80 * 0.58, rel=0.02)
+
+
+def test_separate_planes_stay_separate():
+    """A parallel wall 20 cm behind, and a wall facing the other way, start their own patches."""
+    model = GlobalModel(cell_size=0.02)
+    model.add_frame([wall(sigma=0.001)], np.eye(4))
+    behind = model.add_frame([wall(sigma=0.001, offset=0.2)], np.eye(4))
+    turned = np.diag([-1.0, 1.0, -1.0, 1.0])
+    turned[2, 3] = 4.0  # seen from the far side
+    back = model.add_frame([wall(sigma=0.001)], turned)
+    assert behind.created == 1 and back.created == 1
+    assert len(model.patches) == 3
+
+
+@pytest.fixture(scope="module")
+def arena_run():
+    frames, truths = simulate.simulate_sequence("arena", "sr3000", 12, seed=3)
+    model = GlobalModel()
+    single = None
+    for frame, truth in zip(frames, truths):
+        segmented = segment_frame(frame)
+        surfaces = triangulate_segments(segmented.points, segmented.segmentation, range_sigma=segmented.range_sigma)
+        if single is None:
+            single = [(surface, truth.T_world_sensor) for surface in surfaces]
+        model.add_frame(surfaces, truth.T_world_sensor, timestamp=frame.timestamp)
+    return model, single, truths
+
+
+def _distance_to_scene(points):
+    planes = simulate.get_scene("arena").planes
+    planes = planes[np.isfinite(planes).all(axis=1)]
+    return np.abs(points @ planes[:, :3].T + planes[:, 3]).min(axis=1)
+
+
+def test_simulated_sequence_fuses_closer_to_the_true_planes(arena_run):
+    model, single, truths = arena_run
+    fused = np.vstack([s.vertices for s in model.surfaces(lod=False) if np.isfinite(s.plane).all()]).astype(np.float64)
+    first = np.vstack([s.vertices.astype(np.float64) @ pose[:3, :3].T + pose[:3, 3] for s, pose in single])
+    assert np.median(_distance_to_scene(fused)) < 0.7 * np.median(_distance_to_scene(first))
+    # 12 frames of a slowly moving robot: the model holds far fewer vertices than the frames did.
+    assert model.n_vertices < 2.5 * len(first)
+    timestamps, poses = model.trajectory()
+    assert np.allclose(poses, [truth.T_world_sensor for truth in truths])
+    assert len(timestamps) == 12 and (np.diff(timestamps) > 0).all()
+
+
+def test_patches_each_lie_on_one_true_plane(arena_run):
+    model, _, _ = arena_run
+    planes = simulate.get_scene("arena").planes
+    planes = planes[np.isfinite(planes).all(axis=1)]
+    for surface in model.surfaces(lod=False):
+        distance = np.abs(surface.vertices.astype(np.float64) @ planes[:, :3].T + planes[:, 3])
+        distance[:, np.abs(planes[:, :3] @ surface.plane[:3]) < 0.95] = np.inf
+        owner = np.bincount(distance.argmin(axis=1), minlength=len(planes))
+        assert owner.max() >= 0.9 * surface.n_vertices
+
+
+def test_checkpoint_resume_equals_the_uninterrupted_run(tmp_path):
+    frames, truths = simulate.simulate_sequence("corridor", "sr3000", 6, seed=5)
+    inputs = []
+    for frame, truth in zip(frames, truths):
+        segmented = segment_frame(frame)
+        inputs.append((triangulate_segments(segmented.points, segmented.segmentation, range_sigma=segmented.range_sigma),
+                       truth.T_world_sensor))
+    covariance = np.diag([1e-6, 1e-6, 1e-6, 1e-4, 1e-4, 1e-4])
+    straight = GlobalModel()
+    for surfaces, pose in inputs:
+        straight.add_frame(surfaces, pose, covariance=covariance)
+    resumed = GlobalModel()
+    for surfaces, pose in inputs[:3]:
+        resumed.add_frame(surfaces, pose, covariance=covariance)
+    resumed.save(tmp_path / "model.npz")
+    resumed = GlobalModel.load(tmp_path / "model.npz")
+    assert resumed.n_frames == 3
+    for surfaces, pose in inputs[3:]:
+        resumed.add_frame(surfaces, pose, covariance=covariance)
+    assert resumed.history == straight.history
+    for ours, theirs in zip(resumed.surfaces(lod=False), straight.surfaces(lod=False)):
+        assert np.array_equal(ours.vertices, theirs.vertices) and np.array_equal(ours.faces, theirs.faces)
+        for level in ("UL1", "UL2", "UL3"):
+            assert np.array_equal(ours.uncertainty[level], theirs.uncertainty[level])
+    assert [p.name for p in tmp_path.iterdir()] == ["model.npz"]  # nothing half-written left behind
+
+
+def test_bad_inputs(tmp_path):
+    model = GlobalModel()
+    with pytest.raises(ValueError, match="T_world_sensor"):
+        model.add_frame([wall()], np.zeros((4, 4)))
+    with pytest.raises(ValueError, match="covariance must be 6x6"):
+        model.add_frame([wall()], np.eye(4), covariance=np.eye(3))
+    with pytest.raises(TypeError, match=r"surfaces\[0\]"):
+        model.add_frame([np.zeros((3, 3))], np.eye(4))
+    with pytest.raises(ValueError, match="cell_size"):
+        GlobalModel(cell_size=0)
+    with pytest.raises(ValueError, match="nonplanar"):
+        GlobalModel(nonplanar="melt")
+    assert model.n_frames == 0  # refused frames leave no trace
+    empty = model.add_frame([], np.eye(4))
+    assert empty.created == 0 and model.n_frames == 1 and model.surfaces() == []
+    (tmp_path / "broken.npz").write_bytes(b"not a zip file")
+    with pytest.raises(FormatError, match="broken.npz"):
+        GlobalModel.load(tmp_path / "broken.npz")
+    np.savez(tmp_path / "other.npz", poses=np.zeros((0, 4, 4)))
+    with pytest.raises(FormatError, match="format_version"):
+        GlobalModel.load(tmp_path / "other.npz")
