@@ -196,3 +196,85 @@ def test_compose_covariance_matches_sampled_poses():
         compose_covariance(world, np.eye(6), np.eye(3))
     unconstrained = np.diag([1e-4] * 5 + [np.inf])
     assert np.isinf(compose_covariance(np.eye(4), np.zeros((6, 6)), unconstrained)[5, 5])
+
+
+def _tracked_sequence(scene, sensor, n_frames, seed):
+    import dataclasses
+
+    from rangesurf.register import FrameTracker
+
+    true_poses = simulate.default_trajectory(scene, n_frames, frame_rate=rs.get_sensor(sensor).frame_rate)
+    odometry = simulate.noisy_odometry(true_poses, seed=seed)
+    tracker = FrameTracker()
+    estimate = []
+    for k, (frame, _) in enumerate(simulate.iter_sequence(scene, sensor, n_frames, seed=seed, trajectory=true_poses)):
+        frame = dataclasses.replace(frame, pose=odometry[k])
+        smooth = denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)
+        points = (frame.rays * smooth[..., None]).astype(np.float32)
+        normals = estimate_normals(points, projection=frame.sensor.projection)
+        estimate.append(tracker.track(points, normals, projection=frame.sensor.projection, odometry=frame.pose))
+    return estimate, true_poses, odometry
+
+
+@pytest.mark.parametrize("scene", ["arena", "corridor"])
+def test_tracker_meets_per_frame_accuracy_from_noisy_odometry(scene):
+    """20 SR-3000 frames from drifting odometry: every frame-to-frame motion within 0.2 deg and 1 cm."""
+    from rangesurf.trajectory import absolute_trajectory_error, relative_pose_error
+
+    tracked, truth, odometry = _tracked_sequence(scene, "sr3000", 20, seed=6)
+    estimate = np.asarray([pose.T_world_sensor for pose in tracked])
+    rpe = relative_pose_error(estimate, truth)
+    assert rpe.rotation.max <= 0.2 and rpe.translation.max <= 0.01
+    assert relative_pose_error(odometry, truth).rotation.max > 0.5  # the odometry alone is far worse
+    assert absolute_trajectory_error(estimate, truth).translation.rmse < absolute_trajectory_error(odometry, truth).translation.rmse
+    assert not any(pose.fallback for pose in tracked)
+    # The covariance grows along the chain (dead reckoning).
+    assert np.trace(tracked[-1].covariance) > np.trace(tracked[1].covariance) > 0
+
+
+def _corridor(rng, count=6000):
+    """Two long parallel walls and a floor: nothing fixes translation (and nothing else) along x."""
+    a = rng.uniform(-5, 5, count)
+    b = rng.uniform(0, 2, count)
+    side = rng.integers(0, 3, count)
+    points = np.where(side[:, None] == 0, np.column_stack([a, np.full(count, -1.0), b]),
+                      np.where(side[:, None] == 1, np.column_stack([a, np.full(count, 1.0), b]),
+                               np.column_stack([a, b - 1.0, np.zeros(count)])))
+    normals = np.where(side[:, None] == 0, [0.0, 1.0, 0.0], np.where(side[:, None] == 1, [0.0, -1.0, 0.0], [0.0, 0.0, 1.0]))
+    return points, normals
+
+
+def test_tracker_takes_the_odometry_along_a_degenerate_direction():
+    """In a featureless corridor ICP fixes the sideways error, and the prior's motion stands along the axis."""
+    from rangesurf.register import FrameTracker
+
+    rng = np.random.default_rng(2)
+    target, normals = _corridor(rng)
+    motion = np.eye(4)
+    motion[:3, 3] = [0.20, 0.0, 0.0]
+    source = target - motion[:3, 3]  # what the moved sensor sees of the same corridor
+    odometry = motion.copy()
+    odometry[:3, 3] += [0.03, 0.02, 0.0]  # 3 cm too far along, 2 cm sideways
+    tracker = FrameTracker(odometry_sigma=(0.01, 0.02))
+    tracker.track(target, normals, odometry=np.eye(4))
+    tracked = tracker.track(source, normals, odometry=odometry)
+    assert tracked.registration.degenerate
+    assert abs(tracked.T_world_sensor[1, 3]) < 2e-3  # sideways: corrected by ICP
+    assert tracked.T_world_sensor[0, 3] == pytest.approx(0.23, abs=2e-3)  # along the axis: the odometry's
+    assert np.sqrt(tracked.covariance[3, 3]) == pytest.approx(0.02, rel=0.05)  # and the odometry's uncertainty
+    assert np.isfinite(tracked.covariance).all()
+
+
+def test_tracker_falls_back_to_the_prior_without_overlap():
+    from rangesurf.register import FrameTracker
+
+    rng = np.random.default_rng(3)
+    target, normals = _corridor(rng)
+    step = np.eye(4)
+    step[0, 3] = 0.1
+    tracker = FrameTracker()
+    tracker.track(target, normals, odometry=np.eye(4))
+    far_away = target + [0.0, 0.0, 50.0]
+    tracked = tracker.track(far_away, normals, odometry=step)
+    assert tracked.fallback and tracked.registration is None
+    assert np.allclose(tracked.T_world_sensor, step)

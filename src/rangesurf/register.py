@@ -52,7 +52,7 @@ from scipy.spatial.transform import Rotation
 
 from rangesurf.frame import PinholeProjection, check_rigid_transform
 
-__all__ = ["RegistrationResult", "icp", "pose_error", "compose_covariance", "ICP_METHODS"]
+__all__ = ["RegistrationResult", "icp", "pose_error", "compose_covariance", "FrameTracker", "TrackedPose", "ICP_METHODS"]
 
 ICP_METHODS = ("point_to_plane", "point_to_point")
 # Tukey's biweight constant (95 % efficiency at Gaussian noise), in robust standard deviations.
@@ -91,6 +91,10 @@ class RegistrationResult:
         The geometry does not constrain all six degrees of freedom.
     unconstrained : (K, 6) float64
         Unit directions (rotation, translation) the data does not constrain.
+    information : (6, 6) float64
+        The robustly weighted Gauss-Newton information matrix ``J^T W J``
+        at the end (without the residual variance): ``covariance`` is
+        ``rmse**2`` times its inverse in the constrained directions.
     """
 
     T_target_source: np.ndarray
@@ -101,6 +105,7 @@ class RegistrationResult:
     converged: bool
     degenerate: bool = False
     unconstrained: np.ndarray = field(default_factory=lambda: np.zeros((0, 6)))
+    information: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
 
 
 def icp(
@@ -275,6 +280,7 @@ def icp(
         converged=bool(converged),
         degenerate=len(unconstrained) > 0,
         unconstrained=unconstrained,
+        information=information,
     )
 
 
@@ -356,6 +362,177 @@ def compose_covariance(T_world_target: ArrayLike, world_covariance: ArrayLike, r
         carried = adjoint @ stand_in @ adjoint.T
         carried = np.where(np.abs(carried) > 1e250, np.inf, carried)
     return covariances[0] + carried
+
+
+@dataclass(frozen=True)
+class TrackedPose:
+    """Where `FrameTracker.track` put a frame.
+
+    Parameters
+    ----------
+    T_world_sensor : (4, 4) float64
+    covariance : (6, 6) float64
+        Of the pose, as a left perturbation in world coordinates (rotation
+        vector, translation): the chained frame-to-frame uncertainty.
+    registration : RegistrationResult or None
+        The frame-to-frame ICP result (None for the first frame and when
+        ICP failed).
+    prior : str
+        Where the initial guess came from: ``"first"``, ``"odometry"``,
+        ``"constant_velocity"``.
+    fallback : bool
+        ICP failed (too little overlap): the prior's motion was used, with
+        the prior's uncertainty.
+    """
+
+    T_world_sensor: np.ndarray
+    covariance: np.ndarray
+    registration: RegistrationResult | None
+    prior: str
+    fallback: bool = False
+
+
+class FrameTracker:
+    """Tracking by ICP against a keyframe, with odometry (or the previous motion) as prior.
+
+    Each frame is registered onto the current keyframe, starting from the
+    odometry's motion since the previous frame when the frames carry
+    odometry poses, else from the previous motion (constant velocity). A
+    frame becomes the next keyframe once it has moved ``keyframe_distance``
+    or turned ``keyframe_angle`` from the current one (or ICP failed), so
+    registration errors add up once per keyframe rather than once per frame.
+    Where ICP cannot see a direction -- a corridor along its axis, a single
+    wall -- the prior's motion is kept in that direction and its
+    uncertainty enters the covariance, so a degenerate scene hands over to
+    odometry instead of freezing the estimate; where ICP fails outright,
+    the prior's motion is used and flagged.
+
+    Parameters
+    ----------
+    max_correspondence_distance : float
+        Metres (`icp`).
+    odometry_sigma : (float, float)
+        Standard deviation of the prior's motion per frame: rotation
+        (radians) and translation (metres), per axis.
+    keyframe_distance, keyframe_angle : float
+        Metres and degrees of motion from the keyframe that make a new one
+        (0: every frame is a keyframe, plain frame-to-frame tracking).
+    method : {"point_to_plane", "point_to_point"}
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from rangesurf import simulate
+    >>> from rangesurf.normals import estimate_normals
+    >>> frames, truths = simulate.simulate_sequence("arena", "sr3000", 3, seed=0)
+    >>> tracker = FrameTracker()
+    >>> for frame in frames:
+    ...     normals = estimate_normals(frame.points, projection=frame.sensor.projection)
+    ...     tracked = tracker.track(frame.points, normals, projection=frame.sensor.projection)
+    >>> rotation, translation = pose_error(tracked.T_world_sensor, np.linalg.inv(truths[0].T_world_sensor) @ truths[2].T_world_sensor)
+    >>> bool(rotation < 0.2 and translation < 0.01)
+    True
+    """
+
+    def __init__(
+        self,
+        *,
+        max_correspondence_distance: float = 0.1,
+        odometry_sigma: tuple[float, float] = (0.01, 0.02),
+        keyframe_distance: float = 0.3,
+        keyframe_angle: float = 10.0,
+        method: str = "point_to_plane",
+    ) -> None:
+        if method not in ICP_METHODS:
+            raise ValueError(f"method must be one of {ICP_METHODS}, got {method!r}")
+        if not (len(odometry_sigma) == 2 and all(value > 0 for value in odometry_sigma)):
+            raise ValueError(f"odometry_sigma must be two values > 0 (radians, metres), got {odometry_sigma!r}")
+        if not (keyframe_distance >= 0 and keyframe_angle >= 0):
+            raise ValueError("keyframe_distance and keyframe_angle must be >= 0")
+        self.max_correspondence_distance = float(max_correspondence_distance)
+        self.method = method
+        self.keyframe_distance = float(keyframe_distance)
+        self.keyframe_angle = float(keyframe_angle)
+        self.prior_covariance = np.diag([odometry_sigma[0] ** 2] * 3 + [odometry_sigma[1] ** 2] * 3)
+        # The keyframe: points, normals, world pose and its covariance.
+        self._keyframe: tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray] | None = None
+        self._previous_odometry: np.ndarray | None = None
+        self._motion = np.eye(4)
+        self.pose = np.eye(4)
+        self.covariance = np.zeros((6, 6))
+
+    def track(
+        self,
+        points: ArrayLike,
+        normals: ArrayLike | None,
+        *,
+        projection: PinholeProjection | None = None,
+        odometry: ArrayLike | None = None,
+    ) -> TrackedPose:
+        """Register a frame and return its world pose.
+
+        Parameters
+        ----------
+        points : (H, W, 3) or (N, 3) float array
+            The frame's points (sensor frame), NaN where invalid.
+        normals : same shape, optional
+            Its normals (kept if the frame becomes a keyframe; needed for point-to-plane).
+        projection : PinholeProjection, optional
+            For projective association of organized frames.
+        odometry : (4, 4) array, optional
+            The frame's odometry pose (``RangeFrame.pose``); the first
+            frame's sets the world frame.
+        """
+        odometry_pose = None if odometry is None else check_rigid_transform(odometry, "odometry")
+        points = np.asarray(points)
+        normals = None if normals is None else np.asarray(normals)
+        if self._keyframe is None:
+            self.pose = np.eye(4) if odometry_pose is None else odometry_pose.copy()
+            self._keyframe = (points, normals, self.pose.copy(), self.covariance.copy())
+            self._previous_odometry = odometry_pose
+            return TrackedPose(self.pose.copy(), self.covariance.copy(), None, "first")
+        if odometry_pose is not None and self._previous_odometry is not None:
+            step, prior_name = np.linalg.inv(self._previous_odometry) @ odometry_pose, "odometry"
+        else:
+            step, prior_name = self._motion, "constant_velocity"
+        key_points, key_normals, key_pose, key_covariance = self._keyframe
+        prior = np.linalg.inv(key_pose) @ self.pose @ step
+        result = None
+        try:
+            result = icp(points, key_points, key_normals, initial=prior, method=self.method,
+                         target_projection=projection if key_points.ndim == 3 else None,
+                         max_correspondence_distance=self.max_correspondence_distance)
+            motion, relative_covariance = self._with_prior(result, prior)
+            pose = key_pose @ motion
+            covariance = compose_covariance(key_pose, key_covariance, relative_covariance)
+        except ValueError:
+            # No overlap with the keyframe: dead-reckon one step on the prior.
+            pose = self.pose @ step
+            covariance = compose_covariance(self.pose, self.covariance, self.prior_covariance)
+            motion = np.linalg.inv(key_pose) @ pose
+        self._motion = np.linalg.inv(self.pose) @ pose
+        self.pose, self.covariance = pose, covariance
+        self._previous_odometry = odometry_pose
+        moved = float(np.linalg.norm(motion[:3, 3]))
+        turned = math.degrees(math.acos(np.clip((np.trace(motion[:3, :3]) - 1) / 2, -1.0, 1.0)))
+        if result is None or moved >= self.keyframe_distance or turned >= self.keyframe_angle:
+            self._keyframe = (points, normals, pose.copy(), covariance.copy())
+        return TrackedPose(pose.copy(), covariance.copy(), result, prior_name, result is None)
+
+    def _with_prior(self, result: RegistrationResult, prior: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """ICP's motion and covariance, with the prior's in the directions ICP could not see."""
+        if not result.degenerate:
+            return result.T_target_source, result.covariance
+        # Left perturbation from the prior to ICP's estimate, with its unconstrained part removed.
+        difference = result.T_target_source @ np.linalg.inv(prior)
+        delta = np.r_[Rotation.from_matrix(difference[:3, :3]).as_rotvec(), difference[:3, 3]]
+        free = result.unconstrained
+        delta -= free.T @ (free @ delta)
+        # Information of the data plus the prior's in the free directions.
+        prior_information = free.T @ np.linalg.inv(free @ self.prior_covariance @ free.T) @ free
+        variance = result.rmse**2 if math.isfinite(result.rmse) and result.rmse > 0 else 1.0
+        information = result.information / variance + prior_information
+        return _exp(delta) @ prior, np.linalg.inv(information)
 
 
 # --------------------------------------------------------------------------

@@ -48,6 +48,7 @@ from typing import Any
 import numba
 import numpy as np
 from scipy.interpolate import CubicSpline
+from scipy.spatial.transform import Rotation
 
 from rangesurf.frame import RangeFrame, SensorModel, check_rigid_transform, get_sensor
 from rangesurf.io._common import FormatError, atomic_path
@@ -63,6 +64,7 @@ __all__ = [
     "get_scene",
     "look_at",
     "default_trajectory",
+    "noisy_odometry",
     "iter_sequence",
     "ray_cast",
     "SimulationNoise",
@@ -718,6 +720,50 @@ def default_trajectory(scene: str | Scene, n_frames: int, *, frame_rate: float) 
     poses[:, :2, 3] = position
     poses[:, 2, 3] = spec.sensor_height
     return poses
+
+
+def noisy_odometry(
+    poses: np.ndarray, *, seed: int = 0, translation_noise: float = 0.05, rotation_noise_deg: float = 0.5
+) -> np.ndarray:
+    """Wheel-odometry-like poses: the true steps with random errors, integrated (so they drift).
+
+    Each step ``inv(P_k-1) P_k`` is perturbed by a translation error of
+    ``translation_noise`` times its length (per axis, standard deviation,
+    plus 1 mm) and a rotation error of ``rotation_noise_deg`` degrees (per
+    axis); the first pose is exact.
+
+    Parameters
+    ----------
+    poses : (N, 4, 4) array
+        True ``T_world_sensor``.
+
+    Returns
+    -------
+    (N, 4, 4) float64
+        Odometry poses, for ``RangeFrame.pose`` (``dataclasses.replace(frame, pose=...)``).
+
+    Examples
+    --------
+    >>> poses = default_trajectory("arena", 50, frame_rate=25.0)
+    >>> odometry = noisy_odometry(poses, seed=1)
+    >>> bool(np.allclose(odometry[0], poses[0])), bool(np.linalg.norm(odometry[-1, :3, 3] - poses[-1, :3, 3]) > 1e-3)
+    (True, True)
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must have shape (N, 4, 4), got {poses.shape}")
+    if not (translation_noise >= 0 and rotation_noise_deg >= 0):
+        raise ValueError("odometry noise levels must be >= 0")
+    rng = np.random.default_rng(seed)
+    odometry = poses.copy()
+    for k in range(1, len(poses)):
+        step = np.linalg.inv(poses[k - 1]) @ poses[k]
+        length = float(np.linalg.norm(step[:3, 3]))
+        error = np.eye(4)
+        error[:3, :3] = Rotation.from_rotvec(rng.normal(0.0, math.radians(rotation_noise_deg), 3)).as_matrix()
+        error[:3, 3] = rng.normal(0.0, translation_noise * length + 1e-3, 3)
+        odometry[k] = odometry[k - 1] @ step @ error
+    return odometry
 
 
 # --------------------------------------------------------------------------
