@@ -123,61 +123,52 @@ def _command_simulate(args: argparse.Namespace) -> int:
     return 0
 
 
+def _command_run(args: argparse.Namespace) -> int:
+    from threadpoolctl import threadpool_limits
+
+    from rangesurf.config import PipelineConfig
+    from rangesurf.runner import run
+
+    config = PipelineConfig.load(args.config) if args.config else None
+    # The pipeline's matrices are tiny: a threaded BLAS only adds stalls on a busy machine.
+    with threadpool_limits(limits=1, user_api="blas"):
+        summary = run(args.input, args.out, config=config, frames=args.frames, sensor=args.sensor, seed=args.seed,
+                      overwrite=args.overwrite, resume=args.resume, realtime=args.realtime, progress=not args.quiet)
+    _print_run_summary(summary)
+    return 0 if summary.stopped is None or summary.stopped.startswith("interrupted") else 1
+
+
 def _command_demo(args: argparse.Namespace) -> int:
-    out = args.out
-    print(f"rangesurf {rangesurf.__version__} demo: simulated {args.sensor} in the '{args.scene}' scene, {args.frames} frames")
-    frames, truths, elapsed = _simulate_to_folder(
-        scene=args.scene, sensor=args.sensor, n_frames=args.frames, seed=args.seed, out=out, quiet=args.quiet
-    )
-    print(f"  simulated in {elapsed:.2f} s ({len(frames) / elapsed:.1f} frames/s), written to {out}")
+    print(f"rangesurf {rangesurf.__version__} demo: {args.frames} simulated {args.sensor} frames of the '{args.scene}' "
+          f"scene, with drifting wheel odometry, through the whole pipeline")
+    args.input, args.config, args.resume, args.realtime, args.overwrite = f"sim:{args.scene}", None, False, False, True
+    return _command_run(args)
 
-    loaded = rangesurf.load(out)
-    if len(loaded) != len(frames):
-        raise RuntimeError(f"read back {len(loaded)} frames from {out}, wrote {len(frames)}")
-    print(f"  read back {len(loaded)} frames with rangesurf.load({str(out)!r})")
-    from rangesurf.segment import evaluate_segmentation, segment_frame, truth_segmentation
 
-    print()
-    print("  frame  valid %  surfaces  mixed  spikes  clamped |  range error vs truth [mm]  | model  | denoised           | planar segments")
-    print("                                                   |  median |e|   RMSE          | sigma  | RMSE [mm]  removed | found  correct/truth  normal err")
-    min_region = round(100 * loaded[0].range.size / (176 * 144)) if loaded else 100
-    for index, (frame, truth) in enumerate(zip(loaded, truths)):
-        clean = frame.valid & np.isfinite(truth.range) & ~truth.mixed & ~truth.outlier & ~truth.clamped
-        error = (frame.range - truth.range)[clean]
-        result = segment_frame(frame)
-        smooth = result.range
-        kept = clean & np.isfinite(smooth)
-        surfaces = len(np.unique(truth.surface_id[truth.surface_id > 0]))
-        parts = truth_segmentation(truth, frame.rays)
-        scores = evaluate_segmentation(parts.labels, result.segmentation.labels, truth_planes=parts.planes,
-                                       machine_planes=result.segmentation.planes, min_region_size=min_region)
-        print(
-            f"  {index:5d}  {100 * frame.valid.mean():6.1f}  {surfaces:8d}  {int(truth.mixed.sum()):5d}  "
-            f"{int(truth.outlier.sum()):6d}  {int(truth.clamped.sum()):7d} | "
-            f"{1000 * np.median(np.abs(error)):9.2f}  {1000 * np.sqrt(np.mean(error**2)):9.2f}     | "
-            f"{1000 * np.median(truth.sigma[clean]):6.2f} | "
-            f"{1000 * np.sqrt(np.mean((smooth - truth.range)[kept] ** 2)):9.2f}  {int((frame.valid & ~np.isfinite(smooth)).sum()):7d} | "
-            f"{result.segmentation.n_segments:5d}  {scores.correct:7d}/{scores.n_truth:<5d}  {scores.mean_normal_error_deg:7.2f} deg"
-        )
-    if loaded:
-        from rangesurf.lod import prepare_levels
-        from rangesurf.mesh import triangulate_segments
-
-        surfaces = triangulate_segments(result.points, result.segmentation)
-        if surfaces:
-            largest = prepare_levels(max(surfaces, key=lambda item: item.n_vertices))
-            print()
-            print(f"  last frame meshed: {len(surfaces)} surfaces, {sum(item.n_faces for item in surfaces)} triangles; "
-                  f"its largest surface from {largest.n_vertices} vertices down to (vertices, level-of-detail error) "
-                  + ", ".join(f"{level.count} ({1000 * level.error:.1f} mm)" for level in largest.levels[1::3]))
-    print()
-    print("  denoised: outlier removal + anisotropic diffusion with the sensor's noise model (RMSE on the")
-    print("  pixels the simulator did not corrupt). Planar segments: normals, then region growing; 'correct' is")
-    print(f"  Hoover et al.'s correct detection at T = 0.8 of the true planar surfaces of >= {min_region} pixels.")
-    print("  Next: `rangesurf info " + str(out) + "`, `rangesurf denoise FILE --out DIR`, `rangesurf segment FILE --out DIR`,")
-    print("  `rangesurf lod FILE --out DIR`;")
-    print("  The later stages (register, merge, uncertainty) join this demo as they land.")
-    return 0
+def _print_run_summary(summary) -> None:
+    metrics = summary.metrics
+    stages = metrics.get("stage_ms_median", {})
+    print(f"  {metrics['frames']} frames merged at {metrics.get('frames_per_second')} frames/s on one core "
+          f"({summary.seconds:.1f} s with reading or simulating the input); "
+          f"{metrics['late_frames']} over their time budget, {len(metrics['skipped'])} skipped"
+          + (f"; stopped: {summary.stopped}" if summary.stopped else ""))
+    if stages:
+        print("  median ms per frame: " + ", ".join(f"{stage} {value:.1f}" for stage, value in stages.items()))
+    print(f"  model: {metrics['surfaces']} surfaces, {metrics['vertices']} vertices, {metrics['triangles']} triangles "
+          f"(cells of {1000 * (metrics['cell_size_m'] or 0):.1f} mm)")
+    for level, stats in metrics.get("uncertainty_m", {}).items():
+        print(f"  {level}: median {1000 * stats['median']:.2f} mm, 95th percentile {1000 * stats['p95']:.2f} mm")
+    accuracy = metrics.get("accuracy")
+    if accuracy:
+        print(f"  against ground truth: trajectory ATE {1000 * accuracy['ate_rmse_m']:.1f} mm RMSE, per-frame error "
+              f"at most {accuracy['rpe_rotation_max_deg']:.3f} deg / {1000 * accuracy['rpe_translation_max_m']:.1f} mm"
+              + (f"; model vertices a median {1000 * accuracy['model_to_true_planes_median_m']:.1f} mm "
+                 f"(95 %: {1000 * accuracy['model_to_true_planes_p95_m']:.1f} mm) from the true planes"
+                 if "model_to_true_planes_median_m" in accuracy else ""))
+    for source, error in summary.skipped[:5]:
+        print(f"  skipped {source}: {error}")
+    print(f"  wrote {summary.out}/: model.ply, model.glb, trajectory.txt, timings.csv, metrics.json, report.html, "
+          "config.toml, checkpoint.npz")
 
 
 def _command_denoise(args: argparse.Namespace) -> int:
@@ -310,8 +301,21 @@ def build_parser() -> argparse.ArgumentParser:
     add_simulation_options(simulate, frames=10, out=None)
     simulate.set_defaults(handler=_command_simulate)
 
-    demo = commands.add_parser("demo", help="run the built-in simulated sequence end to end")
-    add_simulation_options(demo, frames=25, out="demo-out")
+    run = commands.add_parser("run", help="the main job: a sequence through the whole pipeline into a model, with a report")
+    run.add_argument("input", help="file, folder, glob or ROS bag, or a simulated sequence: sim:arena, sim:corridor")
+    run.add_argument("--out", type=Path, required=True, help="output folder")
+    run.add_argument("--config", type=Path, help="settings (TOML, as the config.toml a run writes)")
+    run.add_argument("--frames", type=int, help="at most this many frames (simulated: default 200)")
+    run.add_argument("--sensor", choices=sorted(SENSORS), help="sensor preset (simulated input, or overriding a reader)")
+    run.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    run.add_argument("--overwrite", action="store_true", help="replace the outputs of an earlier run in --out")
+    run.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.npz")
+    run.add_argument("--realtime", action="store_true", help="feed frames at the sensor's frame rate")
+    run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.set_defaults(handler=_command_run)
+
+    demo = commands.add_parser("demo", help="run a built-in simulated sequence through the whole pipeline")
+    add_simulation_options(demo, frames=200, out="demo-out")
     demo.set_defaults(handler=_command_demo)
 
     denoise = commands.add_parser("denoise", help="remove outliers and smooth range images, keeping edges")
@@ -348,10 +352,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     if getattr(args, "handler", None) is None:
         parser.print_help()
         return 2
-    if getattr(args, "frames", 1) < 1:
+    if getattr(args, "frames", None) is not None and args.frames < 1:
         parser.error(f"--frames must be at least 1, got {args.frames}")
     try:
         return args.handler(args)
+    except KeyboardInterrupt:
+        print(f"rangesurf {args.command}: interrupted", file=sys.stderr)
+        return 130
     except (ValueError, OSError, ImportError) as error:
         # FormatError is a ValueError: its message already names file and field.
         print(f"rangesurf {args.command}: error: {error}", file=sys.stderr)

@@ -39,7 +39,7 @@ from rangesurf._grid import pixel_pitch, ranges
 from rangesurf.segment import Segmentation
 
 __all__ = [
-    "Surface", "triangulate_segments", "triangulate_in_plane", "boundary_loops", "fill_small_holes", "UNCERTAINTY_LEVELS",
+    "Surface", "triangulate_segments", "segment_vertices", "triangulate_in_plane", "boundary_loops", "fill_small_holes", "UNCERTAINTY_LEVELS",
 ]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
@@ -240,27 +240,89 @@ def triangulate_segments(
             continue
         used = vertex_pixels[vertex_starts[label] : vertex_starts[label + 1]]
         rows, cols = np.divmod(used, width)
-        vertices = points[rows, cols]
-        plane = np.asarray(segmentation.planes[label], dtype=np.float64)
-        if np.isfinite(plane).all():
-            normals = np.broadcast_to(plane[:3].astype(np.float32), vertices.shape)
-        else:
-            normals = _vertex_normals(vertices, own)
-        uncertainty = {}
-        if range_sigma is not None:
-            # Noise along the ray, seen along the normal: sigma |cos(incidence)|.
-            rays = vertices / np.maximum(distance[rows, cols], 1e-12)[:, None]
-            cosine = np.abs(np.einsum("ij,ij->i", rays, normals))
-            uncertainty["UL1"] = (range_sigma[rows, cols] * cosine).astype(np.float32)
-        if np.isfinite(segmentation.residuals[label]):
-            uncertainty["UL2"] = np.full(len(used), segmentation.residuals[label], np.float32)
-        surfaces.append(
-            Surface(
-                vertices=vertices, faces=own, normals=normals,
-                pixels=np.column_stack([rows, cols]), plane=plane, segment=label, uncertainty=uncertainty,
-            )
-        )
+        surfaces.append(_segment_surface(points, distance, range_sigma, segmentation, label, rows, cols, own))
     return surfaces
+
+
+def segment_vertices(
+    points: ArrayLike, segmentation: Segmentation, *, range_sigma: ArrayLike | None = None, stride: int = 1
+) -> list[Surface]:
+    """The pixels of every segment as vertex-only surfaces (no triangles), for merging into a model.
+
+    Cheaper than `triangulate_segments` when the triangles are not needed
+    (`rangesurf.merge.GlobalModel` re-meshes what it fuses).
+
+    Parameters
+    ----------
+    points : (H, W, 3) float array
+        Sensor-frame points, NaN where invalid.
+    segmentation : Segmentation
+    range_sigma : (H, W) float array, optional
+        Range noise; gives each vertex ``"UL1"`` (see `triangulate_segments`).
+    stride : int
+        Take every ``stride``-th row and column.
+
+    Returns
+    -------
+    list of Surface
+        One per non-empty segment, in label order, with no faces.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from rangesurf.segment import Segmentation
+    >>> rows, cols = np.mgrid[0:4, 0:6].astype(np.float32)
+    >>> points = np.dstack([cols * 0.01, rows * 0.01, np.full(rows.shape, 2.0, np.float32)])
+    >>> labels = np.ones((4, 6), np.int32)
+    >>> segments = Segmentation(labels, np.array([[np.nan] * 4, [0.0, 0.0, -1.0, 2.0]]), np.array([np.nan, 0.0]), np.array([0, 24]))
+    >>> [surface.n_vertices for surface in segment_vertices(points, segments, stride=2)]
+    [6]
+    """
+    points = check_point_grid(points)
+    labels = np.asarray(segmentation.labels)
+    if labels.shape != points.shape[:2]:
+        raise ValueError(f"segmentation labels {labels.shape} do not match the points grid {points.shape[:2]}")
+    if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
+        raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
+    distance, valid = ranges(points)
+    if range_sigma is not None:
+        range_sigma = check_range_sigma(distance, range_sigma)
+    picked = np.zeros(labels.shape, bool)
+    picked[::stride, ::stride] = True
+    rows, cols = np.nonzero(picked & valid & (labels > 0))
+    found = labels[rows, cols]
+    order = np.argsort(found, kind="stable")
+    rows, cols, found = rows[order], cols[order], found[order]
+    bounds = np.searchsorted(found, np.arange(1, segmentation.n_segments + 2))
+    surfaces = []
+    for label in range(1, segmentation.n_segments + 1):
+        begin, end = bounds[label - 1], bounds[label]
+        if end > begin:
+            surfaces.append(_segment_surface(points, distance, range_sigma, segmentation, label, rows[begin:end],
+                                             cols[begin:end], np.zeros((0, 3), np.int32)))
+    return surfaces
+
+
+def _segment_surface(points, distance, range_sigma, segmentation, label, rows, cols, faces) -> Surface:
+    """One segment's vertices (given by pixel), with plane normals and UL1 / UL2 where known."""
+    vertices = points[rows, cols]
+    plane = np.asarray(segmentation.planes[label], dtype=np.float64)
+    if np.isfinite(plane).all():
+        normals = np.broadcast_to(plane[:3].astype(np.float32), vertices.shape)
+    else:
+        normals = _vertex_normals(vertices, faces)
+    uncertainty = {}
+    if range_sigma is not None:
+        # Noise along the ray, seen along the normal: sigma |cos(incidence)|.
+        rays = vertices / np.maximum(distance[rows, cols], 1e-12)[:, None]
+        cosine = np.abs(np.einsum("ij,ij->i", rays, normals))
+        uncertainty["UL1"] = np.nan_to_num(range_sigma[rows, cols] * cosine, nan=range_sigma[rows, cols]).astype(np.float32)
+    if np.isfinite(segmentation.residuals[label]):
+        uncertainty["UL2"] = np.full(len(rows), segmentation.residuals[label], np.float32)
+    return Surface(
+        vertices=vertices, faces=faces, normals=normals, pixels=np.column_stack([rows, cols]), plane=plane,
+        segment=label, uncertainty=uncertainty,
+    )
 
 
 @numba.njit(**_JIT)

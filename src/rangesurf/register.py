@@ -398,6 +398,10 @@ class TrackedPose:
     fallback : bool
         ICP failed (too little overlap): the prior's motion was used, with
         the prior's uncertainty.
+    step_covariance : (6, 6) float64
+        This frame's own registration uncertainty (against its keyframe,
+        or the prior's on a fallback), in world coordinates: what a model
+        fused from registered frames should weigh each frame by.
     """
 
     T_world_sensor: np.ndarray
@@ -405,6 +409,7 @@ class TrackedPose:
     registration: RegistrationResult | None
     prior: str
     fallback: bool = False
+    step_covariance: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
 
 
 class FrameTracker:
@@ -525,11 +530,13 @@ class FrameTracker:
                          max_correspondence_distance=self.max_correspondence_distance)
             motion, relative_covariance = self._with_prior(result, prior, prior_covariance)
             pose = key_pose @ motion
-            covariance = compose_covariance(key_pose, key_covariance, relative_covariance)
+            step_covariance = compose_covariance(key_pose, np.zeros((6, 6)), relative_covariance)
+            covariance = key_covariance + step_covariance
         except ValueError:
             # No overlap with the keyframe: dead-reckon one step on the prior.
             pose = self.pose @ step
-            covariance = compose_covariance(self.pose, self.covariance, prior_covariance)
+            step_covariance = compose_covariance(self.pose, np.zeros((6, 6)), prior_covariance)
+            covariance = self.covariance + step_covariance
             motion = np.linalg.inv(key_pose) @ pose
         self._motion = np.linalg.inv(self.pose) @ pose
         self.pose, self.covariance = pose, covariance
@@ -544,7 +551,34 @@ class FrameTracker:
         if overlap_lost or moved >= self.keyframe_distance or turned >= self.keyframe_angle:
             self._keyframe = (points, normals, pose.copy(), covariance.copy())
             self._key_inliers = None
-        return TrackedPose(pose.copy(), covariance.copy(), result, prior_name, result is None)
+        return TrackedPose(pose.copy(), covariance.copy(), result, prior_name, result is None, step_covariance)
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything `track` needs to continue, as arrays (for checkpoints; see `restore`)."""
+        if self._keyframe is None:
+            return {"started": np.array(False)}
+        key_points, key_normals, key_pose, key_covariance = self._keyframe
+        state = {
+            "started": np.array(True), "key_points": key_points, "key_pose": key_pose, "key_covariance": key_covariance,
+            "key_inliers": np.array(np.nan if self._key_inliers is None else self._key_inliers),
+            "motion": self._motion, "pose": self.pose, "covariance": self.covariance,
+        }
+        if key_normals is not None:
+            state["key_normals"] = key_normals
+        if self._previous_odometry is not None:
+            state["previous_odometry"] = self._previous_odometry
+        return state
+
+    def restore(self, state: dict[str, np.ndarray]) -> None:
+        """Continue from a `state` (same settings assumed)."""
+        if not bool(state["started"]):
+            self._keyframe = None
+            return
+        self._keyframe = (state["key_points"], state.get("key_normals"), state["key_pose"], state["key_covariance"])
+        inliers = float(state["key_inliers"])
+        self._key_inliers = None if math.isnan(inliers) else inliers
+        self._motion, self.pose, self.covariance = state["motion"], state["pose"], state["covariance"]
+        self._previous_odometry = state.get("previous_odometry")
 
     def _with_prior(self, result: RegistrationResult, prior: np.ndarray, prior_covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """ICP's motion fused with the prior's, each weighted by its information (a Gauss-Newton/MAP step).

@@ -28,7 +28,7 @@ from pathlib import Path
 from rangesurf.frame import RangeFrame, SensorModel, get_sensor
 from rangesurf.io._common import FormatError, atomic_path, atomic_write
 
-__all__ = ["FormatError", "atomic_path", "atomic_write", "iter_frames", "load", "save", "READERS", "WRITERS"]
+__all__ = ["FormatError", "atomic_path", "atomic_write", "data_files", "iter_frames", "load", "save", "READERS", "WRITERS"]
 
 # suffix -> (module, reader function)
 READERS: dict[str, tuple[str, str]] = {
@@ -70,8 +70,15 @@ def _is_ros2_bag_folder(folder: Path) -> bool:
     return (folder / "metadata.yaml").is_file()
 
 
-def _data_files(path: Path) -> list[Path]:
-    """The data files a path stands for, in sequence order, all of one format."""
+def data_files(path: str | os.PathLike) -> list[Path]:
+    """The data files a path (file, folder, glob, ROS 2 bag folder) stands for, in sequence order, all of one format.
+
+    Raises
+    ------
+    FormatError
+        Nothing readable there, or a folder mixing formats.
+    """
+    path = Path(path)
     if path.is_dir():
         if _is_ros2_bag_folder(path):
             return [path]
@@ -126,7 +133,7 @@ def iter_frames(
     """
     path = Path(path)
     sensor_model = None if sensor is None else get_sensor(sensor)
-    for file in _data_files(path):
+    for file in data_files(path):
         suffix = ".bag" if file.is_dir() else file.suffix.lower()
         reader = _function(READERS, suffix)
         options = {"sensor": sensor_model}

@@ -69,7 +69,7 @@ from rangesurf.frame import RangeFrame, SensorModel, check_rigid_transform, get_
 from rangesurf.io._common import FormatError, atomic_write
 from rangesurf.io._text import parse_numbers, split_lists
 
-__all__ = ["read_ply", "write_ply", "read_stanford_conf"]
+__all__ = ["read_ply", "write_ply", "write_mesh_ply", "read_stanford_conf"]
 
 _TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -828,3 +828,57 @@ def write_ply(path: str | Path, frame: RangeFrame) -> None:
         stream.write(("\n".join(lines) + "\n").encode("utf-8"))
         stream.write(vertices.tobytes())
         stream.write(grid.tobytes())
+
+
+def write_mesh_ply(path: str | Path, surfaces: list) -> None:
+    """Write triangulated surfaces as one binary little-endian PLY mesh, atomically.
+
+    Vertex properties: ``x y z nx ny nz`` (float32, metres), one float32
+    column per uncertainty level ``ul1 ul2 ul3 ul4`` (metres along the
+    normal, NaN where a surface does not carry that level) and ``surface``
+    (int32, 1-based index of the surface in ``surfaces``); faces as
+    ``vertex_indices`` lists. Opens in MeshLab, CloudCompare, Open3D and trimesh.
+
+    Parameters
+    ----------
+    path : path-like
+    surfaces : list of rangesurf.mesh.Surface
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from rangesurf.mesh import Surface
+    >>> square = Surface(np.array([[0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1.0]]), [[0, 1, 2], [0, 2, 3]],
+    ...                  np.tile([0, 0, -1.0], (4, 1)), np.full((4, 2), -1), uncertainty={"UL1": np.full(4, 0.01)})
+    >>> write_mesh_ply("model.ply", [square])                          # doctest: +SKIP
+    """
+    from rangesurf.mesh import UNCERTAINTY_LEVELS
+
+    fields = [(name, "<f4") for name in ("x", "y", "z", "nx", "ny", "nz")]
+    fields += [(level.lower(), "<f4") for level in UNCERTAINTY_LEVELS] + [("surface", "<i4")]
+    total = sum(surface.n_vertices for surface in surfaces)
+    vertices = np.empty(total, dtype=fields)
+    faces = []
+    start = 0
+    for index, surface in enumerate(surfaces, start=1):
+        rows = slice(start, start + surface.n_vertices)
+        for axis, name in enumerate("xyz"):
+            vertices[name][rows] = surface.vertices[:, axis]
+            vertices["n" + name][rows] = surface.normals[:, axis]
+        for level in UNCERTAINTY_LEVELS:
+            vertices[level.lower()][rows] = surface.uncertainty.get(level, np.nan)
+        vertices["surface"][rows] = index
+        faces.append(surface.faces.astype(np.int64) + start)
+        start += surface.n_vertices
+    face_array = np.concatenate(faces) if faces else np.zeros((0, 3), np.int64)
+    records = np.empty(len(face_array), dtype=[("count", "u1"), ("indices", "<i4", (3,))])
+    records["count"] = 3
+    records["indices"] = face_array
+    lines = ["ply", "format binary_little_endian 1.0", "comment rangesurf model: uncertainty levels in metres along the normal",
+             f"element vertex {total}"]
+    lines += [f"property {'int' if kind == '<i4' else 'float'} {name}" for name, kind in fields]
+    lines += [f"element face {len(face_array)}", "property list uchar int vertex_indices", "end_header"]
+    with atomic_write(path, "wb") as stream:
+        stream.write(("\n".join(lines) + "\n").encode("ascii"))
+        stream.write(vertices.tobytes())
+        stream.write(records.tobytes())

@@ -241,10 +241,12 @@ class GlobalModel:
         reach = self.max_plane_distance or max(3.0 * sigma, 2.0 * self.cell_size)
         cosine = math.cos(math.radians(self.max_normal_angle))
         candidates = []
+        # The median distance from a plane is as well known from 2,000 points as from all of them.
+        sample = observations.points[:: max(1, len(observations.points) // 2000)]
         for index, patch in enumerate(self.patches):
             if patch.normal @ plane[:3] < cosine:
                 continue
-            if np.median(patch.distance_to(observations.points)) > reach:
+            if np.median(patch.distance_to(sample)) > reach:
                 continue
             touching = patch.touching(observations.points, self.bridge + 1)
             if touching >= self.min_overlap:
@@ -312,35 +314,8 @@ class GlobalModel:
         path = Path(path)
         if path.suffix != ".npz":
             raise ValueError(f"model checkpoints are .npz files, got {path.name!r}")
-        settings = dict(
-            cell_size=self.cell_size, max_normal_angle=self.max_normal_angle, max_plane_distance=self.max_plane_distance,
-            bridge=self.bridge, min_overlap=self.min_overlap, nonplanar=self.nonplanar,
-        )
-        arrays: dict[str, np.ndarray] = {
-            "format_version": np.array(_FORMAT_VERSION),
-            "settings": np.array(json.dumps(settings)),
-            "history": np.array(json.dumps([asdict(step) for step in self.history])),
-            "poses": np.asarray(self.poses, np.float64).reshape(-1, 4, 4),
-            "timestamps": np.asarray(self.timestamps, np.float64),
-            "patch_origins": np.asarray([patch.origin for patch in self.patches], np.float64).reshape(-1, 3),
-            "patch_axes": np.asarray([patch.axes for patch in self.patches], np.float64).reshape(-1, 3, 3),
-            "patch_cell_sizes": np.asarray([patch.cell_size for patch in self.patches], np.float64),
-            "patch_cells": np.cumsum([0] + [patch.n_cells for patch in self.patches]).astype(np.int64),
-            "patch_frame_counts": np.cumsum([0] + [len(patch.frames) for patch in self.patches]).astype(np.int64),
-            "keys": _concatenate([patch.keys for patch in self.patches], np.int64),
-            "patch_frames": _concatenate([np.asarray(patch.frames, np.int64) for patch in self.patches], np.int64),
-        }
-        for name in CELL_FIELDS:
-            arrays[f"cells_{name}"] = _concatenate([patch.sums[name] for patch in self.patches], np.float64)
-        for index, surface in enumerate(self.others):
-            for name in ("vertices", "faces", "normals", "pixels", "plane"):
-                arrays[f"other{index}_{name}"] = getattr(surface, name)
-            arrays[f"other{index}_segment"] = np.array(surface.segment)
-            for level, values in surface.uncertainty.items():
-                arrays[f"other{index}_uncertainty_{level}"] = values
-        arrays["n_others"] = np.array(len(self.others))
         with atomic_path(path) as temporary:
-            np.savez(temporary, **arrays)
+            np.savez(temporary, **self.to_arrays())
         return path
 
     @classmethod
@@ -358,39 +333,77 @@ class GlobalModel:
         except (OSError, ValueError) as error:
             raise FormatError(path, f"not a readable .npz model checkpoint ({error})") from None
         with archive:
-            def field(name: str) -> np.ndarray:
-                if name not in archive.files:
-                    raise FormatError(path, "missing from the model checkpoint", where=f"field {name!r}")
-                return archive[name]
+            return cls.from_arrays({name: archive[name] for name in archive.files}, source=path)
 
-            version = int(field("format_version"))
-            if version != _FORMAT_VERSION:
-                raise FormatError(path, f"model format version {version}, this rangesurf reads {_FORMAT_VERSION}",
-                                  where="field 'format_version'")
-            model = cls(**json.loads(str(field("settings"))))
-            model.poses = [pose for pose in field("poses")]
-            model.timestamps = field("timestamps").tolist()
-            model.history = [MergeStep(**step) for step in json.loads(str(field("history")))]
-            cells, frame_counts = field("patch_cells"), field("patch_frame_counts")
-            keys, frames = field("keys"), field("patch_frames")
-            sums = {name: field(f"cells_{name}") for name in CELL_FIELDS}
-            for index, (origin, axes, cell_size) in enumerate(zip(field("patch_origins"), field("patch_axes"), field("patch_cell_sizes"))):
-                cell_slice = slice(int(cells[index]), int(cells[index + 1]))
-                model.patches.append(PlanarPatch(
-                    origin=origin, axes=axes, cell_size=float(cell_size), keys=keys[cell_slice],
-                    sums={name: values[cell_slice].copy() for name, values in sums.items()},
-                    frames=frames[int(frame_counts[index]) : int(frame_counts[index + 1])].tolist(),
-                ))
-            for index in range(int(field("n_others"))):
-                uncertainty = {level: field(f"other{index}_uncertainty_{level}") for level in ("UL1", "UL2", "UL3", "UL4")
-                               if f"other{index}_uncertainty_{level}" in archive.files}
-                model.others.append(Surface(
-                    *(field(f"other{index}_{name}") for name in ("vertices", "faces", "normals", "pixels")),
-                    plane=field(f"other{index}_plane"), segment=int(field(f"other{index}_segment")), uncertainty=uncertainty,
-                ))
+    def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
+        """The model as named arrays (what `save` writes; ``prefix`` lets it share a file)."""
+        settings = dict(
+            cell_size=self.cell_size, max_normal_angle=self.max_normal_angle, max_plane_distance=self.max_plane_distance,
+            bridge=self.bridge, min_overlap=self.min_overlap, nonplanar=self.nonplanar,
+        )
+        arrays: dict[str, np.ndarray] = {
+            "format_version": np.array(_FORMAT_VERSION),
+            "settings": np.array(json.dumps(settings)),
+            "history": np.array(json.dumps([asdict(step) for step in self.history])),
+            "poses": np.asarray(self.poses, np.float64).reshape(-1, 4, 4),
+            "timestamps": np.asarray(self.timestamps, np.float64),
+            "patch_origins": np.asarray([patch.origin for patch in self.patches], np.float64).reshape(-1, 3),
+            "patch_axes": np.asarray([patch.axes for patch in self.patches], np.float64).reshape(-1, 3, 3),
+            "patch_cell_sizes": np.asarray([patch.cell_size for patch in self.patches], np.float64),
+            "patch_cells": np.cumsum([0] + [patch.n_cells for patch in self.patches]).astype(np.int64),
+            "patch_frame_counts": np.cumsum([0] + [len(patch.frames) for patch in self.patches]).astype(np.int64),
+            "cell_coordinates": np.concatenate([patch.coordinates for patch in self.patches]).astype(np.int32)
+            if self.patches else np.zeros((0, 2), np.int32),
+            "patch_frames": _concatenate([np.asarray(patch.frames, np.int64) for patch in self.patches], np.int64),
+            "n_others": np.array(len(self.others)),
+        }
+        for name in CELL_FIELDS:
+            arrays[f"cells_{name}"] = _concatenate([patch.sums[name] for patch in self.patches], np.float64)
+        for index, surface in enumerate(self.others):
+            for name in ("vertices", "faces", "normals", "pixels", "plane"):
+                arrays[f"other{index}_{name}"] = getattr(surface, name)
+            arrays[f"other{index}_segment"] = np.array(surface.segment)
+            for level, values in surface.uncertainty.items():
+                arrays[f"other{index}_uncertainty_{level}"] = values
+        return {prefix + name: value for name, value in arrays.items()}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], *, prefix: str = "", source: str | os.PathLike = "model") -> GlobalModel:
+        """Rebuild a model from `to_arrays` output; a missing or inconsistent field is a FormatError."""
+
+        def field(name: str) -> np.ndarray:
+            if prefix + name not in arrays:
+                raise FormatError(source, "missing from the model checkpoint", where=f"field {prefix + name!r}")
+            return arrays[prefix + name]
+
+        version = int(field("format_version"))
+        if version != _FORMAT_VERSION:
+            raise FormatError(source, f"model format version {version}, this rangesurf reads {_FORMAT_VERSION}",
+                              where=f"field {prefix + 'format_version'!r}")
+        model = cls(**json.loads(str(field("settings"))))
+        model.poses = [pose for pose in field("poses")]
+        model.timestamps = field("timestamps").tolist()
+        model.history = [MergeStep(**step) for step in json.loads(str(field("history")))]
+        cells, frame_counts = field("patch_cells"), field("patch_frame_counts")
+        coordinates, frames = field("cell_coordinates"), field("patch_frames")
+        sums = {name: field(f"cells_{name}") for name in CELL_FIELDS}
+        for index, (origin, axes, cell_size) in enumerate(zip(field("patch_origins"), field("patch_axes"), field("patch_cell_sizes"))):
+            cell_slice = slice(int(cells[index]), int(cells[index + 1]))
+            model.patches.append(PlanarPatch(
+                origin=origin, axes=axes, cell_size=float(cell_size), coordinates=coordinates[cell_slice],
+                sums={name: values[cell_slice].copy() for name, values in sums.items()},
+                frames=frames[int(frame_counts[index]) : int(frame_counts[index + 1])].tolist(),
+            ))
+        for index in range(int(field("n_others"))):
+            uncertainty = {level: field(f"other{index}_uncertainty_{level}") for level in ("UL1", "UL2", "UL3", "UL4")
+                           if f"{prefix}other{index}_uncertainty_{level}" in arrays}
+            model.others.append(Surface(
+                *(field(f"other{index}_{name}") for name in ("vertices", "faces", "normals", "pixels")),
+                plane=field(f"other{index}_plane"), segment=int(field(f"other{index}_segment")), uncertainty=uncertainty,
+            ))
         if len(model.timestamps) != len(model.poses) or len(model.history) != len(model.poses):
-            raise FormatError(path, f"{len(model.poses)} poses, {len(model.timestamps)} timestamps and "
-                              f"{len(model.history)} history entries disagree", where="field 'poses'")
+            raise FormatError(source, f"{len(model.poses)} poses, {len(model.timestamps)} timestamps and "
+                              f"{len(model.history)} history entries disagree", where=f"field {prefix + 'poses'!r}")
         return model
 
 
@@ -417,12 +430,16 @@ def _observations(surface: Surface, points: np.ndarray, normal: np.ndarray, cova
     fit = surface.uncertainty["UL2"].astype(np.float64) ** 2 if "UL2" in surface.uncertainty else zero
     registration = zero
     if covariance is not None:
-        # A left perturbation (w, t) moves p by w x p + t; along the normal n that is w . (p x n) + t . n.
-        jacobian = np.hstack([np.cross(points, normal), np.broadcast_to(normal, points.shape)])
-        # Unconstrained directions of a degenerate registration (inf) count as 100 m (rad) standard
-        # deviations: vertices they move get next to no weight, vertices they do not move are unaffected.
+        # A left perturbation (w, t) moves p by w x p + t; along the normal n that is w . (p x n) + t . n,
+        # so the variance is a' S_rr a + 2 a' S_rt n + n' S_tt n with a = p x n. Unconstrained
+        # directions of a degenerate registration (inf) count as 100 m (rad) standard deviations:
+        # vertices they move get next to no weight, vertices they do not move are unaffected.
         bounded = np.where(np.isfinite(covariance), covariance, _UNCONSTRAINED_VARIANCE)
-        registration = np.einsum("ij,jk,ik->i", jacobian, bounded, jacobian)
+        arm = np.cross(points, normal)
+        # Element-wise products rather than BLAS calls (see PlanarPatch.fitted_plane).
+        turned = arm[:, :1] * bounded[0, :3] + arm[:, 1:2] * bounded[1, :3] + arm[:, 2:] * bounded[2, :3]
+        mixed = bounded[:3, 3:] @ normal
+        registration = (turned * arm).sum(axis=1) + 2.0 * (arm * mixed).sum(axis=1) + normal @ bounded[3:, 3:] @ normal
     noise = np.nan_to_num(noise, nan=0.0)
     fit = np.nan_to_num(fit, nan=0.0)
     return Observations(points, noise, fit, np.maximum(registration, 0.0))

@@ -36,14 +36,16 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import cv2
+import numba
 import numpy as np
 
+from rangesurf._hashgrid import empty_table, insert, lookup, rehash
 from rangesurf.mesh import Surface, _grid_faces
 
 __all__ = ["PlanarPatch", "Observations", "CELL_FIELDS"]
 
-# Grid coordinates are packed into one non-negative int64 key: (column + OFFSET) << 32 | (row + OFFSET).
-_OFFSET = 1 << 30
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
+
 # Per-cell sums, all weighted by the observation weight w = 1 / (total variance) except `information`
 # (sum of 1 / sensor variance) and `count`.
 CELL_FIELDS = ("weight", "u", "v", "h", "hh", "noise", "fit", "registration", "information", "count")
@@ -75,14 +77,6 @@ class Observations:
         return Observations(self.points[keep], self.noise[keep], self.fit[keep], self.registration[keep])
 
 
-def _pack(columns: np.ndarray, rows: np.ndarray) -> np.ndarray:
-    return ((columns.astype(np.int64) + _OFFSET) << 32) | (rows.astype(np.int64) + _OFFSET)
-
-
-def _unpack(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    return (keys >> 32) - _OFFSET, (keys & 0xFFFFFFFF) - _OFFSET
-
-
 @dataclass
 class PlanarPatch:
     """One planar surface of the global model: a plane frame and the cells observed on it.
@@ -96,10 +90,12 @@ class PlanarPatch:
         the normal faces the sensor that first saw the patch.
     cell_size : float
         Grid spacing in metres.
-    keys : (K,) int64
-        Packed grid coordinates of the occupied cells, sorted.
+    coordinates : (K, 2) int32
+        Grid column (along u) and row (along v) of each occupied cell, in
+        the order the cells were first seen.
     sums : dict of str -> (K,) float64
-        The per-cell sums of `CELL_FIELDS`.
+        The per-cell sums of `CELL_FIELDS` (the columns of one
+        ``(K, len(CELL_FIELDS))`` array, `cells`; ``sums`` gives views).
     frames : list of int
         Frames that contributed, in order.
     """
@@ -107,8 +103,8 @@ class PlanarPatch:
     origin: np.ndarray
     axes: np.ndarray
     cell_size: float
-    keys: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    sums: dict[str, np.ndarray] = field(default_factory=dict)
+    coordinates: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int32))
+    sums: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     frames: list[int] = field(default_factory=list)
     # Bumped by every change of the cells, so that meshes and plane fits made from them can be cached.
     revision: int = field(default=0, compare=False)
@@ -117,11 +113,45 @@ class PlanarPatch:
     def __post_init__(self) -> None:
         self.origin = np.asarray(self.origin, np.float64).reshape(3)
         self.axes = np.asarray(self.axes, np.float64).reshape(3, 3)
-        self.keys = np.asarray(self.keys, np.int64).reshape(-1)
-        for name in CELL_FIELDS:
-            self.sums[name] = np.asarray(self.sums.get(name, np.zeros(len(self.keys))), np.float64).reshape(-1)
-            if len(self.sums[name]) != len(self.keys):
-                raise ValueError(f"patch cell field {name!r} has {len(self.sums[name])} values for {len(self.keys)} cells")
+        coordinates = np.asarray(self.coordinates, np.int32).reshape(-1, 2)
+        count = len(coordinates)
+        # Cell storage grows by doubling; a hash table finds a cell's row from its grid coordinates.
+        capacity = max(64, 1 << int(np.ceil(np.log2(max(count, 1)))))
+        self._coords = np.zeros((capacity, 3), np.int32)
+        self._coords[:count, :2] = coordinates
+        self._cells = np.zeros((capacity, len(CELL_FIELDS)))
+        for index, name in enumerate(CELL_FIELDS):
+            values = np.asarray(self.sums.get(name, np.zeros(count)), np.float64).reshape(-1)
+            if len(values) != count:
+                raise ValueError(f"patch cell field {name!r} has {len(values)} values for {count} cells")
+            self._cells[:count, index] = values
+        self._count = count
+        self._table_keys, self._table_slots = empty_table(2 * capacity)
+        rehash(self._table_keys, self._table_slots, self._coords, count)
+        self._stamps = np.zeros(capacity, np.int64)
+        self._stamp = 0
+        self._views()
+
+    def _views(self) -> None:
+        """Point `coordinates`, `cells` and `sums` at the used rows (after they move or grow)."""
+        self.coordinates = self._coords[: self._count, :2]
+        self.cells = self._cells[: self._count]
+        self.sums = {name: self.cells[:, index] for index, name in enumerate(CELL_FIELDS)}
+
+    def _grow(self, needed: int) -> None:
+        capacity = len(self._coords)
+        while capacity < needed:
+            capacity *= 2
+        if capacity == len(self._coords):
+            return
+        for name in ("_coords", "_cells", "_stamps"):
+            old = getattr(self, name)
+            grown = np.zeros((capacity,) + old.shape[1:], old.dtype)
+            grown[: self._count] = old[: self._count]
+            setattr(self, name, grown)
+        self._table_keys, self._table_slots = empty_table(2 * capacity)
+        rehash(self._table_keys, self._table_slots, self._coords, self._count)
+        self._views()
 
     @classmethod
     def from_plane(cls, plane: np.ndarray, points: np.ndarray, cell_size: float) -> PlanarPatch:
@@ -144,7 +174,7 @@ class PlanarPatch:
 
     @property
     def n_cells(self) -> int:
-        return len(self.keys)
+        return self._count
 
     @property
     def normal(self) -> np.ndarray:
@@ -166,9 +196,20 @@ class PlanarPatch:
         solution = np.zeros(3)
         if self.n_cells >= 3:
             u, v, h = self.cell_means()
-            root = np.sqrt(self.sums["weight"])
-            design = np.column_stack([u, v, np.ones_like(u)]) * root[:, None]
-            solution, *_ = np.linalg.lstsq(design, h * root, rcond=None)
+            weight = self.sums["weight"]
+            # Normal equations of the 3-parameter fit: a 3x3 solve instead of a least-squares
+            # factorisation of all cells (this runs for every patch a frame touches). Element-wise
+            # sums, not BLAS dot products: a threaded BLAS on a busy machine can stall for milliseconds.
+            wu, wv = weight * u, weight * v
+            sw, su, sv = weight.sum(), wu.sum(), wv.sum()
+            suv = (wu * v).sum()
+            normal_matrix = np.array([[(wu * u).sum(), suv, su], [suv, (wv * v).sum(), sv], [su, sv, sw]])
+            right = np.array([(wu * h).sum(), (wv * h).sum(), (weight * h).sum()])
+            try:
+                solution = np.linalg.solve(normal_matrix, right)
+            except np.linalg.LinAlgError:
+                # Collinear cells: the tilt across them is unknown; keep the patch's own plane.
+                solution = np.array([0.0, 0.0, right[2] / max(normal_matrix[2, 2], 1e-300)])
         self._plane = (self.revision, solution)
         return solution
 
@@ -184,7 +225,7 @@ class PlanarPatch:
 
     def occupancy(self, margin: int = 0) -> tuple[np.ndarray, int, int]:
         """Occupied cells as an image (rows v, columns u) with ``margin`` empty cells around; and its origin cell."""
-        columns, rows = _unpack(self.keys)
+        columns, rows = self.coordinates[:, 0], self.coordinates[:, 1]
         column0, row0 = int(columns.min()) - margin, int(rows.min()) - margin
         image = np.zeros((int(rows.max()) - row0 + 1 + margin, int(columns.max()) - column0 + 1 + margin), np.uint8)
         image[rows - row0, columns - column0] = 1
@@ -247,24 +288,26 @@ class PlanarPatch:
         return result
 
     def _accumulate(self, local: np.ndarray, contributions: dict[str, np.ndarray], frame: int) -> tuple[int, int]:
-        """Add per-point sums to the cells the (u, v, h) points fall in; new cells are inserted in key order."""
-        keys = _pack(np.floor(local[:, 0] / self.cell_size), np.floor(local[:, 1] / self.cell_size))
-        unique, inverse = np.unique(keys, return_inverse=True)
-        totals = {name: np.bincount(inverse, weights=contributions[name], minlength=len(unique)) for name in CELL_FIELDS}
-        position = np.searchsorted(self.keys, unique)
-        known = position < len(self.keys)
-        known[known] = self.keys[position[known]] == unique[known]
-        for name in CELL_FIELDS:
-            # Unique keys: each known cell is hit once, so plain indexed addition is safe.
-            self.sums[name][position[known]] += totals[name][known]
-        fresh = ~known
-        self.keys = np.insert(self.keys, position[fresh], unique[fresh])
-        for name in CELL_FIELDS:
-            self.sums[name] = np.insert(self.sums[name], position[fresh], totals[name][fresh])
+        """Add per-point sums to the cells the (u, v, h) points fall in; returns (cells updated, cells added)."""
+        columns = np.floor(local[:, 0] / self.cell_size).astype(np.int32)
+        rows = np.floor(local[:, 1] / self.cell_size).astype(np.int32)
+        table = np.column_stack([contributions[name] for name in CELL_FIELDS])
+        self._stamp += 1
+        updated = added = 0
+        start = 0
+        while start < len(columns):
+            # Room for every remaining point to open a cell, with the table at most half full.
+            self._grow(self._count + len(columns) - start)
+            start, self._count, new_updated, new_added = _accumulate_cells(
+                columns, rows, table, start, self._coords, self._cells, self._count, self._table_keys,
+                self._table_slots, self._stamps, self._stamp)
+            updated += new_updated
+            added += new_added
+        self._views()
         if not self.frames or self.frames[-1] != frame:
             self.frames.append(frame)
         self.revision += 1
-        return int(known.sum()), int(fresh.sum())
+        return updated, added
 
     # ------------------------------------------------------------------
     # Mesh.
@@ -292,7 +335,7 @@ class PlanarPatch:
             # Zero outside: OpenCV's default border would let the erosion keep cells on the image edge.
             image = cv2.morphologyEx(image, cv2.MORPH_CLOSE, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0)
         filled = image.astype(bool) & ~observed
-        columns, rows = _unpack(self.keys)
+        columns, rows = self.coordinates[:, 0], self.coordinates[:, 1]
         u, v, h = self.cell_means()
         weight = self.sums["weight"]
         spread = np.maximum(self.sums["hh"] / weight - h**2, 0.0)
@@ -335,3 +378,33 @@ class PlanarPatch:
             vertices=points, faces=faces, normals=np.tile(self.world_plane()[:3], (count, 1)),
             pixels=np.full((count, 2), -1), plane=self.world_plane(), segment=label, uncertainty=uncertainty,
         )
+
+
+@numba.njit(**_JIT)
+def _accumulate_cells(columns, rows, table, start, coords, cells, count, table_keys, table_slots, stamps, stamp):  # pragma: no cover - compiled
+    """Add rows of ``table`` into the cells at (column, row), opening cells as needed, from point ``start``.
+
+    Stops early (returning where) when the storage is full; returns (next
+    point, cell count, cells updated, cells added), counting each cell once
+    per call (``stamp``).
+    """
+    updated = 0
+    added = 0
+    fields = table.shape[1]
+    for k in range(start, columns.shape[0]):
+        slot = lookup(table_keys, table_slots, columns[k], rows[k], 0)
+        if slot < 0:
+            if count >= coords.shape[0]:
+                return k, count, updated, added
+            slot = count
+            count += 1
+            coords[slot, 0], coords[slot, 1], coords[slot, 2] = columns[k], rows[k], 0
+            insert(table_keys, table_slots, columns[k], rows[k], 0, slot)
+            stamps[slot] = stamp
+            added += 1
+        elif stamps[slot] != stamp:
+            stamps[slot] = stamp
+            updated += 1
+        for f in range(fields):
+            cells[slot, f] += table[k, f]
+    return columns.shape[0], count, updated, added

@@ -60,6 +60,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_point_grid, check_range_sigma
+from rangesurf._hashgrid import insert as _insert
+from rangesurf._hashgrid import lookup as _lookup
+from rangesurf._hashgrid import rehash as _rehash
 from rangesurf.frame import RangeFrame, check_rigid_transform
 from rangesurf.mesh import Surface
 
@@ -653,39 +656,6 @@ def _prepare_rays(
             n += 1
     return (world_points[:n], world_rays[:n], world_normals[:n], weight[:n], pose_variance[:n], behind[:n],
             start[:n], n_steps[:n])
-
-
-@numba.njit(**_JIT)
-def _hash(x, y, z, mask):  # pragma: no cover - compiled
-    return ((np.int64(x) * 73856093) ^ (np.int64(y) * 19349669) ^ (np.int64(z) * 83492791)) & mask
-
-
-@numba.njit(**_JIT)
-def _lookup(keys, slots, x, y, z):  # pragma: no cover - compiled
-    """Slot of block (x, y, z), -1 if not allocated (open addressing, linear probing)."""
-    mask = len(slots) - 1
-    h = _hash(x, y, z, mask)
-    while slots[h] >= 0:
-        if keys[h, 0] == x and keys[h, 1] == y and keys[h, 2] == z:
-            return slots[h]
-        h = (h + 1) & mask
-    return -1
-
-
-@numba.njit(**_JIT)
-def _insert(keys, slots, x, y, z, slot):  # pragma: no cover - compiled
-    mask = len(slots) - 1
-    h = _hash(x, y, z, mask)
-    while slots[h] >= 0:
-        h = (h + 1) & mask
-    keys[h, 0], keys[h, 1], keys[h, 2] = x, y, z
-    slots[h] = slot
-
-
-@numba.njit(**_JIT)
-def _rehash(keys, slots, coords, n_blocks):  # pragma: no cover - compiled
-    for b in range(n_blocks):
-        _insert(keys, slots, coords[b, 0], coords[b, 1], coords[b, 2], b)
 
 
 @numba.njit(**_JIT)

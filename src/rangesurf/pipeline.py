@@ -1,0 +1,297 @@
+"""The online pipeline: one frame at a time through every stage (thesis Figure 3.1).
+
+``denoise -> segment (normals, region growing) -> segment vertices -> register
+(keyframe ICP from odometry) -> merge into the global model``, with the
+re-meshing of changed patches and their level-of-detail order as deferrable
+work: it runs every ``run.remesh_every`` frames when the frame's time budget
+allows, is postponed (and counted) when it does not, and always runs in
+`Pipeline.finish`. Every frame's per-stage timings and whether it overran
+its budget are reported; no frame is dropped silently.
+
+Examples
+--------
+>>> from rangesurf import simulate
+>>> frames, truths = simulate.simulate_sequence("arena", "sr3000", n_frames=3, seed=0)
+>>> pipeline = Pipeline()
+>>> results = [pipeline.process(frame) for frame in frames]
+>>> surfaces = pipeline.finish()
+>>> sorted(results[-1].timings) == sorted(STAGES + ("total",))
+True
+>>> len(surfaces) >= 4 and all(surface.n_faces > 0 for surface in surfaces)
+True
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from rangesurf.config import PipelineConfig
+from rangesurf.denoise import denoise_range
+from rangesurf.frame import PinholeProjection, RangeFrame
+from rangesurf.io._common import FormatError, atomic_path
+from rangesurf.merge import GlobalModel, MergeStep
+from rangesurf.mesh import Surface, segment_vertices, triangulate_segments
+from rangesurf.normals import estimate_normals
+from rangesurf.register import FrameTracker, RegistrationResult
+from rangesurf.segment import Segmentation, segment_nxd, segment_planes
+
+__all__ = ["Pipeline", "FrameResult", "STAGES"]
+
+STAGES = ("denoise", "segment", "surfaces", "register", "merge", "deferred")
+# From this many pixels on, registration and merging thin the frame (a depth camera gives far
+# more points than they need).
+_DENSE_FRAME = 200_000
+_CHECKPOINT_VERSION = 1
+
+
+@dataclass(frozen=True)
+class FrameResult:
+    """What `Pipeline.process` did with one frame.
+
+    Parameters
+    ----------
+    index : int
+        0-based position in the run.
+    timestamp : float
+    T_world_sensor : (4, 4) float64
+        The tracked pose.
+    covariance : (6, 6) float64
+        Its uncertainty (world, rotation then translation).
+    range : (H, W) float32
+        The denoised range.
+    segmentation : Segmentation
+    registration : RegistrationResult or None
+    merge : MergeStep
+    surfaces : list of Surface
+        The frame's own triangulated segments (sensor frame) when
+        ``mesh.frame_surfaces`` is on, else empty.
+    timings : dict of str -> float
+        Milliseconds per stage (`STAGES`) and ``"total"``.
+    deferred : bool
+        Re-meshing was due but postponed for lack of time.
+    late : bool
+        The frame took longer than its budget.
+    """
+
+    index: int
+    timestamp: float
+    T_world_sensor: np.ndarray
+    covariance: np.ndarray
+    range: np.ndarray
+    segmentation: Segmentation
+    registration: RegistrationResult | None
+    merge: MergeStep
+    surfaces: list[Surface] = field(default_factory=list)
+    timings: dict[str, float] = field(default_factory=dict)
+    deferred: bool = False
+    late: bool = False
+
+
+class Pipeline:
+    """Joins the stages per a `PipelineConfig` and keeps the global model.
+
+    Parameters
+    ----------
+    config : PipelineConfig, optional
+        Defaults when omitted.
+
+    Attributes
+    ----------
+    model : GlobalModel
+    tracker : FrameTracker
+    frames, late, deferred_runs, postponed : int
+        Frames processed, frames over budget, re-meshings done, re-meshings postponed.
+    """
+
+    def __init__(self, config: PipelineConfig | None = None) -> None:
+        self.config = config or PipelineConfig()
+        settings = self.config.register
+        self.tracker = FrameTracker(
+            max_correspondence_distance=settings.max_correspondence_distance,
+            odometry_sigma=(settings.odometry_sigma_rotation, settings.odometry_sigma_translation),
+            keyframe_distance=settings.keyframe_distance, keyframe_angle=settings.keyframe_angle,
+        )
+        merge = self.config.merge
+        self.model = GlobalModel(
+            cell_size=merge.cell_size, max_normal_angle=merge.max_normal_angle, max_plane_distance=merge.max_plane_distance,
+            bridge=merge.bridge, min_overlap=merge.min_overlap, nonplanar=merge.nonplanar,
+        )
+        self.frames = 0
+        self.late = 0
+        self.deferred_runs = 0
+        self.postponed = 0
+        self.checkpoint_extra: dict[str, np.ndarray] = {}
+        self._remesh_due = False
+
+    # ------------------------------------------------------------------
+    # Derived settings (filled from the first frame).
+    # ------------------------------------------------------------------
+
+    def _budget_ms(self, frame: RangeFrame) -> float:
+        return self.config.run.budget_ms or 1000.0 / frame.sensor.frame_rate
+
+    def _decimation(self, frame: RangeFrame) -> int:
+        chosen = self.config.register.decimate
+        return chosen if chosen is not None else (2 if frame.range.size >= _DENSE_FRAME else 1)
+
+    def _stride(self, frame: RangeFrame, distance: np.ndarray) -> int:
+        if self.config.merge.stride is not None:
+            return self.config.merge.stride
+        footprint = _median_footprint(frame, distance)
+        return max(1, round(self.model.cell_size / footprint)) if footprint > 0 else 1
+
+    # ------------------------------------------------------------------
+    # One frame.
+    # ------------------------------------------------------------------
+
+    def process(self, frame: RangeFrame) -> FrameResult:
+        """Run one frame through every stage and merge it into the model."""
+        if not isinstance(frame, RangeFrame):
+            raise TypeError(f"Pipeline.process takes a RangeFrame, got {type(frame).__name__}")
+        timings: dict[str, float] = {}
+        start = clock = time.perf_counter()
+
+        def lap(stage: str) -> None:
+            nonlocal clock
+            now = time.perf_counter()
+            timings[stage] = 1e3 * (now - clock)
+            clock = now
+
+        smooth = denoise_range(frame.range, method=self.config.denoise.method, sensor=frame.sensor,
+                               intensity=frame.intensity, rays=frame.rays)
+        points = (frame.rays * smooth[..., None]).astype(np.float32)
+        finite = np.isfinite(smooth)
+        sigma = frame.sensor.range_sigma(np.where(finite, smooth, 1.0), frame.intensity)
+        lap("denoise")
+
+        projection = frame.sensor.projection if isinstance(frame.sensor.projection, PinholeProjection) else None
+        if self.config.segment.segmenter == "region":
+            segmentation = segment_planes(points, range_sigma=sigma, projection=projection)
+        else:
+            segmentation = segment_nxd(points, estimate_normals(points, projection=projection, range_sigma=sigma))
+        lap("segment")
+
+        if self.model.cell_size is None:
+            # Two pixel footprints: the model's vertices need not be denser than the sensor's noise
+            # lets them be told apart, and merging costs scale with the vertices fused.
+            self.model.cell_size = max(2.0 * _median_footprint(frame, np.where(finite, smooth, np.nan)), 0.01)
+        vertex_sets = segment_vertices(points, segmentation, range_sigma=sigma,
+                                       stride=self._stride(frame, np.where(finite, smooth, np.nan)))
+        frame_surfaces = []
+        if self.config.mesh.frame_surfaces:
+            frame_surfaces = triangulate_segments(points, segmentation, max_edge_pixels=self.config.mesh.max_edge_pixels,
+                                                  max_view_angle=self.config.mesh.max_view_angle, range_sigma=sigma)
+        lap("surfaces")
+
+        step = self._decimation(frame)
+        icp_points, icp_sigma = points[::step, ::step], sigma[::step, ::step]
+        icp_projection = projection
+        if projection is not None and step > 1:
+            icp_projection = PinholeProjection(projection.fx / step, projection.fy / step, projection.cx / step,
+                                               projection.cy / step)
+        normals = estimate_normals(icp_points, projection=icp_projection, range_sigma=icp_sigma)
+        if icp_projection is None:
+            # No pinhole: closest-point registration on the valid points (k-d tree).
+            keep = np.isfinite(icp_points).all(axis=-1) & np.isfinite(normals).all(axis=-1)
+            icp_points, normals = icp_points[keep], normals[keep]
+        tracked = self.tracker.track(icp_points, normals, projection=icp_projection, odometry=frame.pose)
+        lap("register")
+
+        merge_step = self.model.add_frame(vertex_sets, tracked.T_world_sensor, covariance=tracked.step_covariance,
+                                          timestamp=frame.timestamp)
+        lap("merge")
+
+        budget = self._budget_ms(frame)
+        every = self.config.run.remesh_every
+        if every and (self.frames + 1) % every == 0:
+            self._remesh_due = True
+        deferred = False
+        if self._remesh_due:
+            # Re-meshing is the thesis's deferrable work: only when the frame has time left.
+            if 1e3 * (time.perf_counter() - start) < 0.5 * budget:
+                self.model.surfaces(lod=True)
+                self.deferred_runs += 1
+                self._remesh_due = False
+            else:
+                self.postponed += 1
+                deferred = True
+        lap("deferred")
+
+        timings["total"] = 1e3 * (time.perf_counter() - start)
+        late = timings["total"] > budget
+        self.late += late
+        result = FrameResult(
+            index=self.frames, timestamp=frame.timestamp, T_world_sensor=tracked.T_world_sensor,
+            covariance=tracked.covariance, range=smooth, segmentation=segmentation, registration=tracked.registration,
+            merge=merge_step, surfaces=frame_surfaces, timings=timings, deferred=deferred, late=late,
+        )
+        self.frames += 1
+        return result
+
+    def finish(self) -> list[Surface]:
+        """Do all deferred work and return the model's surfaces (world frame, with LOD order)."""
+        self._remesh_due = False
+        return self.model.surfaces(lod=True)
+
+    # ------------------------------------------------------------------
+    # Checkpoints.
+    # ------------------------------------------------------------------
+
+    def save_checkpoint(self, path: str | Path, *, extra: dict[str, np.ndarray] | None = None) -> Path:
+        """Write the model, the tracker and the counters to one ``.npz``, atomically.
+
+        `Pipeline.resume` continues from it as if the run had not stopped.
+        ``extra`` arrays (names without "/") travel along and come back as
+        ``checkpoint_extra`` of the resumed pipeline.
+        """
+        path = Path(path)
+        arrays = self.model.to_arrays(prefix="model/")
+        arrays.update({f"extra/{name}": value for name, value in (extra or {}).items()})
+        arrays.update({f"tracker/{name}": value for name, value in self.tracker.state().items()})
+        arrays.update({
+            "pipeline/version": np.array(_CHECKPOINT_VERSION), "pipeline/config": np.array(self.config.to_toml()),
+            "pipeline/counters": np.array([self.frames, self.late, self.deferred_runs, self.postponed], np.int64),
+        })
+        with atomic_path(path) as temporary:
+            np.savez(temporary, **arrays)
+        return path
+
+    @classmethod
+    def resume(cls, path: str | Path) -> Pipeline:
+        """A pipeline continuing from `save_checkpoint` (with the configuration saved in it)."""
+        import tomllib
+
+        path = Path(path)
+        try:
+            archive = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as error:
+            raise FormatError(path, f"not a readable .npz pipeline checkpoint ({error})") from None
+        with archive:
+            arrays = {name: archive[name] for name in archive.files}
+        for name in ("pipeline/version", "pipeline/config", "pipeline/counters"):
+            if name not in arrays:
+                raise FormatError(path, "missing from the pipeline checkpoint", where=f"field {name!r}")
+        if int(arrays["pipeline/version"]) != _CHECKPOINT_VERSION:
+            raise FormatError(path, f"checkpoint version {int(arrays['pipeline/version'])}, this rangesurf reads "
+                              f"{_CHECKPOINT_VERSION}", where="field 'pipeline/version'")
+        config = PipelineConfig.from_dict(tomllib.loads(str(arrays["pipeline/config"])), source=f"{path} (config)")
+        pipeline = cls(config)
+        pipeline.model = GlobalModel.from_arrays(arrays, prefix="model/", source=path)
+        pipeline.tracker.restore({name[len("tracker/"):]: value for name, value in arrays.items() if name.startswith("tracker/")})
+        pipeline.frames, pipeline.late, pipeline.deferred_runs, pipeline.postponed = (int(v) for v in arrays["pipeline/counters"])
+        pipeline.checkpoint_extra = {name[len("extra/"):]: value for name, value in arrays.items() if name.startswith("extra/")}
+        return pipeline
+
+
+def _median_footprint(frame: RangeFrame, distance: np.ndarray) -> float:
+    """Median distance (metres) between horizontally neighbouring rays at their range (every 4th row)."""
+    rays = frame.rays[::4]
+    cosine = np.clip((rays[:, 1:] * rays[:, :-1]).sum(axis=-1), -1.0, 1.0)
+    angle = np.arccos(cosine)
+    footprint = angle * distance[::4, 1:]
+    footprint = footprint[np.isfinite(footprint) & (footprint > 0)]
+    return float(np.median(footprint)) if footprint.size else 0.0
