@@ -278,18 +278,19 @@ def segment_vertices(
     >>> [surface.n_vertices for surface in segment_vertices(points, segments, stride=2)]
     [6]
     """
-    points = check_point_grid(points)
-    labels = np.asarray(segmentation.labels)
-    if labels.shape != points.shape[:2]:
-        raise ValueError(f"segmentation labels {labels.shape} do not match the points grid {points.shape[:2]}")
     if isinstance(stride, bool) or not isinstance(stride, (int, np.integer)) or stride < 1:
         raise ValueError(f"stride must be an integer >= 1, got {stride!r}")
+    labels = np.asarray(segmentation.labels)
+    if labels.shape != np.shape(points)[:2]:
+        raise ValueError(f"segmentation labels {labels.shape} do not match the points grid {np.shape(points)[:2]}")
+    # Check and work on the strided grid only (a depth camera's frame is thinned several times);
+    # pixel coordinates are mapped back at the end.
+    points = check_point_grid(np.asarray(points)[::stride, ::stride])
+    labels = labels[::stride, ::stride]
     distance, valid = ranges(points)
     if range_sigma is not None:
-        range_sigma = check_range_sigma(distance, range_sigma)
-    picked = np.zeros(labels.shape, bool)
-    picked[::stride, ::stride] = True
-    rows, cols = np.nonzero(picked & valid & (labels > 0))
+        range_sigma = check_range_sigma(distance, np.asarray(range_sigma)[::stride, ::stride] if np.ndim(range_sigma) else range_sigma)
+    rows, cols = np.nonzero(valid & (labels > 0))
     found = labels[rows, cols]
     order = np.argsort(found, kind="stable")
     rows, cols, found = rows[order], cols[order], found[order]
@@ -298,8 +299,10 @@ def segment_vertices(
     for label in range(1, segmentation.n_segments + 1):
         begin, end = bounds[label - 1], bounds[label]
         if end > begin:
-            surfaces.append(_segment_surface(points, distance, range_sigma, segmentation, label, rows[begin:end],
-                                             cols[begin:end], np.zeros((0, 3), np.int32)))
+            surface = _segment_surface(points, distance, range_sigma, segmentation, label, rows[begin:end],
+                                       cols[begin:end], np.zeros((0, 3), np.int32))
+            surface.pixels *= stride
+            surfaces.append(surface)
     return surfaces
 
 

@@ -104,7 +104,8 @@ class Pipeline:
     model : GlobalModel
     tracker : FrameTracker
     frames, late, deferred_runs, postponed : int
-        Frames processed, frames over budget, re-meshings done, re-meshings postponed.
+        Frames processed, frames over budget, patches re-meshed as deferred
+        work, frames that left re-meshing for later.
     """
 
     def __init__(self, config: PipelineConfig | None = None) -> None:
@@ -125,7 +126,9 @@ class Pipeline:
         self.deferred_runs = 0
         self.postponed = 0
         self.checkpoint_extra: dict[str, np.ndarray] = {}
-        self._remesh_due = False
+        self._remesh_queue: list = []
+        # Measured cost of re-meshing (mesh and LOD order), per cell; a cautious start.
+        self._ms_per_cell = 0.005
 
     # ------------------------------------------------------------------
     # Derived settings (filled from the first frame).
@@ -208,15 +211,25 @@ class Pipeline:
         budget = self._budget_ms(frame)
         every = self.config.run.remesh_every
         if every and (self.frames + 1) % every == 0:
-            self._remesh_due = True
+            # Due: the patches changed since they were last meshed join the queue.
+            queued = {id(patch) for patch in self._remesh_queue}
+            self._remesh_queue += [patch for patch in self.model.stale_patches() if id(patch) not in queued]
         deferred = False
-        if self._remesh_due:
-            # Re-meshing is the thesis's deferrable work: only when the frame has time left.
-            if 1e3 * (time.perf_counter() - start) < 0.5 * budget:
-                self.model.surfaces(lod=True)
-                self.deferred_runs += 1
-                self._remesh_due = False
-            else:
+        if self._remesh_queue:
+            # Re-meshing is the thesis's deferrable work: as many queued patches as the frame's
+            # remaining time allows (from the measured cost per cell), the rest on later frames.
+            left_ms = budget - 1e3 * (time.perf_counter() - start)
+            cells = int(left_ms / self._ms_per_cell) if left_ms > 0 else 0
+            begin = time.perf_counter()
+            done = self.model.refresh(patches=self._remesh_queue, max_cells=cells) if cells > 0 else []
+            if done:
+                spent = 1e3 * (time.perf_counter() - begin)
+                self._ms_per_cell = 0.7 * self._ms_per_cell + 0.3 * spent / sum(patch.n_cells for patch in done)
+                self.deferred_runs += len(done)
+            live = {id(patch) for patch in self.model.patches}
+            finished = {id(patch) for patch in done}
+            self._remesh_queue = [patch for patch in self._remesh_queue if id(patch) in live and id(patch) not in finished]
+            if self._remesh_queue:
                 self.postponed += 1
                 deferred = True
         lap("deferred")
@@ -234,7 +247,7 @@ class Pipeline:
 
     def finish(self) -> list[Surface]:
         """Do all deferred work and return the model's surfaces (world frame, with LOD order)."""
-        self._remesh_due = False
+        self._remesh_queue = []
         return self.model.surfaces(lod=True)
 
     # ------------------------------------------------------------------

@@ -286,21 +286,44 @@ class GlobalModel:
             Give the patch surfaces their progressive order (`rangesurf.lod`);
             cached per patch until it changes.
         """
+        self.refresh(lod=lod)
         result = []
         for label, patch in enumerate(self.patches, start=1):
-            cached = self._meshes.get(id(patch))
-            if cached is not None and cached[0] == patch.revision and (cached[1] or not lod):
-                surface = cached[2]
-            else:
-                surface = patch.surface(bridge=self.bridge, label=label)
-                if lod and surface.n_vertices:
-                    surface.lod_order, surface.lod_error = progressive_order(surface)
-                self._meshes[id(patch)] = (patch.revision, lod, surface)
+            surface = self._meshes[id(patch)][2]
             surface.segment = label
             result.append(surface)
+        return result + list(self.others)
+
+    def stale_patches(self, *, lod: bool = True) -> list[PlanarPatch]:
+        """The patches whose cached mesh is out of date, most cells first."""
+        return sorted((patch for patch in self.patches if not self._fresh(patch, lod)), key=lambda patch: -patch.n_cells)
+
+    def refresh(self, *, lod: bool = True, patches: list[PlanarPatch] | None = None, max_cells: int | None = None) -> list[PlanarPatch]:
+        """Re-mesh patches (default: all stale ones) with their LOD order; returns those done.
+
+        ``max_cells`` bounds the work (the pipeline's deferrable work per
+        frame): patches that do not fit in what is left are skipped.
+        Patches no longer in the model (joined into others) are ignored.
+        """
         live = {id(patch) for patch in self.patches}
         self._meshes = {key: value for key, value in self._meshes.items() if key in live}
-        return result + list(self.others)
+        done, cells = [], 0
+        for patch in self.stale_patches(lod=lod) if patches is None else patches:
+            if id(patch) not in live or self._fresh(patch, lod):
+                continue
+            if max_cells is not None and cells + patch.n_cells > max_cells:
+                continue
+            surface = patch.surface(bridge=self.bridge, label=0)
+            if lod and surface.n_vertices:
+                surface.lod_order, surface.lod_error = progressive_order(surface)
+            self._meshes[id(patch)] = (patch.revision, lod, surface)
+            done.append(patch)
+            cells += patch.n_cells
+        return done
+
+    def _fresh(self, patch: PlanarPatch, lod: bool) -> bool:
+        cached = self._meshes.get(id(patch))
+        return cached is not None and cached[0] == patch.revision and (cached[1] or not lod)
 
     # ------------------------------------------------------------------
     # Persistence.
@@ -350,6 +373,7 @@ class GlobalModel:
             "patch_origins": np.asarray([patch.origin for patch in self.patches], np.float64).reshape(-1, 3),
             "patch_axes": np.asarray([patch.axes for patch in self.patches], np.float64).reshape(-1, 3, 3),
             "patch_cell_sizes": np.asarray([patch.cell_size for patch in self.patches], np.float64),
+            "patch_moments": np.asarray([patch.moments for patch in self.patches], np.float64).reshape(-1, 9),
             "patch_cells": np.cumsum([0] + [patch.n_cells for patch in self.patches]).astype(np.int64),
             "patch_frame_counts": np.cumsum([0] + [len(patch.frames) for patch in self.patches]).astype(np.int64),
             "cell_coordinates": np.concatenate([patch.coordinates for patch in self.patches]).astype(np.int32)
@@ -387,10 +411,11 @@ class GlobalModel:
         cells, frame_counts = field("patch_cells"), field("patch_frame_counts")
         coordinates, frames = field("cell_coordinates"), field("patch_frames")
         sums = {name: field(f"cells_{name}") for name in CELL_FIELDS}
-        for index, (origin, axes, cell_size) in enumerate(zip(field("patch_origins"), field("patch_axes"), field("patch_cell_sizes"))):
+        patch_fields = zip(field("patch_origins"), field("patch_axes"), field("patch_cell_sizes"), field("patch_moments"))
+        for index, (origin, axes, cell_size, moments) in enumerate(patch_fields):
             cell_slice = slice(int(cells[index]), int(cells[index + 1]))
             model.patches.append(PlanarPatch(
-                origin=origin, axes=axes, cell_size=float(cell_size), coordinates=coordinates[cell_slice],
+                origin=origin, axes=axes, cell_size=float(cell_size), coordinates=coordinates[cell_slice], moments=moments,
                 sums={name: values[cell_slice].copy() for name, values in sums.items()},
                 frames=frames[int(frame_counts[index]) : int(frame_counts[index + 1])].tolist(),
             ))

@@ -106,6 +106,7 @@ class PlanarPatch:
     coordinates: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int32))
     sums: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
     frames: list[int] = field(default_factory=list)
+    moments: np.ndarray | None = None
     # Bumped by every change of the cells, so that meshes and plane fits made from them can be cached.
     revision: int = field(default=0, compare=False)
     _plane: tuple[int, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
@@ -131,6 +132,14 @@ class PlanarPatch:
         self._stamps = np.zeros(capacity, np.int64)
         self._stamp = 0
         self._views()
+        if self.moments is None:
+            # Weighted sums (w, wu, wv, wh, wuu, wuv, wvv, wuh, wvh) of everything fused, for the plane
+            # fit in constant time; from the cell means when not given.
+            self.moments = np.zeros(9)
+            if count:
+                u, v, h = self.cell_means()
+                self.moments = _moments(self.sums["weight"], u, v, h)
+        self.moments = np.asarray(self.moments, np.float64).reshape(9)
 
     def _views(self) -> None:
         """Point `coordinates`, `cells` and `sums` at the used rows (after they move or grow)."""
@@ -190,26 +199,22 @@ class PlanarPatch:
         return self.sums["u"] / weight, self.sums["v"] / weight, self.sums["h"] / weight
 
     def fitted_plane(self) -> np.ndarray:
-        """Height over the patch plane as ``h = a u + b v + c``, weighted least squares over the cells: (a, b, c)."""
+        """Height over the patch plane as ``h = a u + b v + c``, weighted least squares over everything fused: (a, b, c).
+
+        From the running moments: constant time, however large the patch.
+        """
         if self._plane is not None and self._plane[0] == self.revision:
             return self._plane[1]
+        sw, su, sv, sh, suu, suv, svv, suh, svh = self.moments
         solution = np.zeros(3)
-        if self.n_cells >= 3:
-            u, v, h = self.cell_means()
-            weight = self.sums["weight"]
-            # Normal equations of the 3-parameter fit: a 3x3 solve instead of a least-squares
-            # factorisation of all cells (this runs for every patch a frame touches). Element-wise
-            # sums, not BLAS dot products: a threaded BLAS on a busy machine can stall for milliseconds.
-            wu, wv = weight * u, weight * v
-            sw, su, sv = weight.sum(), wu.sum(), wv.sum()
-            suv = (wu * v).sum()
-            normal_matrix = np.array([[(wu * u).sum(), suv, su], [suv, (wv * v).sum(), sv], [su, sv, sw]])
-            right = np.array([(wu * h).sum(), (wv * h).sum(), (weight * h).sum()])
+        if self.n_cells >= 3 and sw > 0:
+            normal_matrix = np.array([[suu, suv, su], [suv, svv, sv], [su, sv, sw]])
+            right = np.array([suh, svh, sh])
             try:
                 solution = np.linalg.solve(normal_matrix, right)
             except np.linalg.LinAlgError:
                 # Collinear cells: the tilt across them is unknown; keep the patch's own plane.
-                solution = np.array([0.0, 0.0, right[2] / max(normal_matrix[2, 2], 1e-300)])
+                solution = np.array([0.0, 0.0, sh / sw])
         self._plane = (self.revision, solution)
         return solution
 
@@ -265,6 +270,7 @@ class PlanarPatch:
             "registration": weight * observations.registration,
             "information": 1.0 / np.maximum(observations.noise, 1e-12), "count": np.ones(len(local)),
         }
+        self.moments += _moments(weight, local[:, 0], local[:, 1], local[:, 2])
         return self._accumulate(local, contributions, frame)
 
     def absorb(self, other: PlanarPatch, frame: int) -> tuple[int, int]:
@@ -283,6 +289,7 @@ class PlanarPatch:
         contributions = {name: other.sums[name] for name in ("weight", "noise", "fit", "registration", "information", "count")}
         contributions.update(u=weight * local[:, 0], v=weight * local[:, 1], h=weight * local[:, 2],
                              hh=weight * local[:, 2] ** 2 + spread)
+        self.moments += _moments(weight, local[:, 0], local[:, 1], local[:, 2])
         result = self._accumulate(local, contributions, frame)
         self.frames = sorted(set(self.frames) | set(other.frames))
         return result
@@ -378,6 +385,13 @@ class PlanarPatch:
             vertices=points, faces=faces, normals=np.tile(self.world_plane()[:3], (count, 1)),
             pixels=np.full((count, 2), -1), plane=self.world_plane(), segment=label, uncertainty=uncertainty,
         )
+
+
+def _moments(weight: np.ndarray, u: np.ndarray, v: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """(w, wu, wv, wh, wuu, wuv, wvv, wuh, wvh) summed; element-wise products, no BLAS (it can stall when threaded)."""
+    wu, wv = weight * u, weight * v
+    return np.array([weight.sum(), wu.sum(), wv.sum(), (weight * h).sum(), (wu * u).sum(), (wu * v).sum(),
+                     (wv * v).sum(), (wu * h).sum(), (wv * h).sum()])
 
 
 @numba.njit(**_JIT)

@@ -1,0 +1,81 @@
+"""The online pipeline: stages joined per config, budget accounting, deferred work, checkpoints."""
+
+import numpy as np
+import pytest
+
+from rangesurf import simulate
+from rangesurf.config import PipelineConfig
+from rangesurf.pipeline import STAGES, Pipeline
+
+
+@pytest.fixture(scope="module")
+def frames():
+    return simulate.simulate_sequence("arena", "sr3000", 6, seed=2)
+
+
+def test_every_frame_reports_its_stages_and_is_tracked(frames):
+    sequence, truths = frames
+    pipeline = Pipeline()
+    results = [pipeline.process(frame) for frame in sequence]
+    for result, truth in zip(results, truths):
+        assert set(result.timings) == set(STAGES) | {"total"}
+        assert result.timings["total"] >= sum(result.timings[stage] for stage in STAGES) * 0.99
+        # Simulated frames carry the true pose as odometry: tracking stays on it.
+        assert np.linalg.norm(result.T_world_sensor[:3, 3] - truth.T_world_sensor[:3, 3]) < 0.005
+    assert pipeline.frames == 6 and pipeline.model.n_frames == 6
+    assert results[-1].merge.cells_updated > results[-1].merge.cells_added
+
+
+def test_frames_over_budget_are_counted_and_deferred_work_waits(frames):
+    sequence, _ = frames
+    config = PipelineConfig.from_dict({"run": {"budget_ms": 0.001, "remesh_every": 2}})
+    pipeline = Pipeline(config)
+    results = [pipeline.process(frame) for frame in sequence]
+    assert pipeline.late == 6 and all(result.late for result in results)
+    # No time left in any frame: the re-meshing due every 2nd frame is postponed, never dropped ...
+    assert pipeline.deferred_runs == 0 and pipeline.postponed > 0 and results[-1].deferred
+    # ... and done at the end.
+    surfaces = pipeline.finish()
+    assert surfaces and all(surface.n_faces > 0 and surface.lod_error.any() for surface in surfaces if surface.n_vertices > 10)
+
+
+def test_deferred_work_runs_when_there_is_time(frames):
+    sequence, _ = frames
+    pipeline = Pipeline(PipelineConfig.from_dict({"run": {"budget_ms": 10_000.0, "remesh_every": 2}}))
+    for frame in sequence:
+        pipeline.process(frame)
+    assert pipeline.deferred_runs > 0 and pipeline.late == 0
+
+
+def test_frame_surfaces_on_request(frames):
+    sequence, _ = frames
+    pipeline = Pipeline(PipelineConfig.from_dict({"mesh": {"frame_surfaces": True}}))
+    result = pipeline.process(sequence[0])
+    assert result.surfaces and all(surface.n_faces > 0 for surface in result.surfaces)
+    assert Pipeline().process(sequence[0]).surfaces == []
+
+
+def test_checkpoint_round_trip_continues_identically(frames, tmp_path):
+    sequence, _ = frames
+    straight = Pipeline()
+    for frame in sequence:
+        straight.process(frame)
+    first = Pipeline()
+    for frame in sequence[:3]:
+        first.process(frame)
+    first.save_checkpoint(tmp_path / "checkpoint.npz", extra={"note": np.arange(3)})
+    resumed = Pipeline.resume(tmp_path / "checkpoint.npz")
+    assert resumed.frames == 3 and resumed.checkpoint_extra["note"].tolist() == [0, 1, 2]
+    for frame in sequence[3:]:
+        resumed.process(frame)
+    assert np.array_equal(resumed.model.trajectory()[1], straight.model.trajectory()[1])
+    for ours, theirs in zip(resumed.model.surfaces(lod=False), straight.model.surfaces(lod=False)):
+        assert np.array_equal(ours.vertices, theirs.vertices)
+
+
+def test_bad_inputs(tmp_path):
+    with pytest.raises(TypeError, match="RangeFrame"):
+        Pipeline().process(np.zeros((10, 10)))
+    (tmp_path / "junk.npz").write_bytes(b"junk")
+    with pytest.raises(ValueError, match="junk.npz"):
+        Pipeline.resume(tmp_path / "junk.npz")
