@@ -13,7 +13,7 @@ Examples
 >>> PipelineConfig.from_dict({"merge": {"cell_sise": 0.02}})
 Traceback (most recent call last):
 ...
-rangesurf.config.ConfigError: config: unknown key 'merge.cell_sise'; the merge section has: bridge, cell_size, max_normal_angle, max_plane_distance, min_overlap, nonplanar, stride
+rangesurf.config.ConfigError: config: unknown key 'merge.cell_sise'; the merge section has: bridge, cell_size, max_normal_angle, max_plane_distance, min_overlap, nonplanar, stride, volume, voxel_size
 """
 
 from __future__ import annotations
@@ -78,6 +78,10 @@ class MergeSettings:
     ``cell_size`` None: twice the first frame's median pixel footprint, at
     least 1 cm. ``stride``: merge every n-th row and column of a frame (None: as
     many pixels as fall into a cell are skipped, about one per cell).
+    ``volume``: the volumetric (TSDF) path, `rangesurf.merge.TSDFVolume`:
+    "off", "unsegmented" (the pixels in no planar segment: objects that are
+    not planes) or "all" (every pixel: a scanned object like the bunny);
+    ``voxel_size`` None: the cell size.
     """
 
     cell_size: float | None = None
@@ -87,6 +91,8 @@ class MergeSettings:
     min_overlap: int = 3
     nonplanar: str = "keep"
     stride: int | None = None
+    volume: str = "off"
+    voxel_size: float | None = None
 
 
 @dataclass(frozen=True)
@@ -134,12 +140,13 @@ class PipelineConfig:
         _check_choice("denoise.method", self.denoise.method, ("diffusion", "layered", "phase", "none"))
         _check_choice("segment.segmenter", self.segment.segmenter, ("region", "nxd"))
         _check_choice("merge.nonplanar", self.merge.nonplanar, ("keep", "drop"))
+        _check_choice("merge.volume", self.merge.volume, ("off", "unsegmented", "all"))
         _check_choice("run.on_bad_frame", self.run.on_bad_frame, ("skip", "stop"))
         for name in ("register.max_correspondence_distance", "register.odometry_sigma_rotation",
                      "register.odometry_sigma_translation", "merge.max_normal_angle", "mesh.max_edge_pixels",
                      "mesh.max_view_angle"):
             _check_positive(name, self._get(name))
-        for name in ("merge.cell_size", "merge.max_plane_distance", "run.budget_ms"):
+        for name in ("merge.cell_size", "merge.max_plane_distance", "merge.voxel_size", "run.budget_ms"):
             if self._get(name) is not None:
                 _check_positive(name, self._get(name))
         for name in ("register.decimate", "merge.stride"):

@@ -1,7 +1,9 @@
 """The online pipeline: one frame at a time through every stage (thesis Figure 3.1).
 
 ``denoise -> segment (normals, region growing) -> segment vertices -> register
-(keyframe ICP from odometry) -> merge into the global model``, with the
+(keyframe ICP from odometry) -> merge into the global model`` (and, when
+configured, the pixels of no planar segment -- or all -- into a TSDF volume),
+with the
 re-meshing of changed patches and their level-of-detail order as deferrable
 work: it runs every ``run.remesh_every`` frames when the frame's time budget
 allows, is postponed (and counted) when it does not, and always runs in
@@ -33,7 +35,7 @@ from rangesurf.config import PipelineConfig
 from rangesurf.denoise import denoise_range
 from rangesurf.frame import PinholeProjection, RangeFrame
 from rangesurf.io._common import FormatError, atomic_path
-from rangesurf.merge import GlobalModel, MergeStep
+from rangesurf.merge import GlobalModel, MergeStep, TSDFVolume
 from rangesurf.mesh import Surface, segment_vertices, triangulate_segments
 from rangesurf.normals import estimate_normals
 from rangesurf.register import FrameTracker, RegistrationResult
@@ -41,7 +43,7 @@ from rangesurf.segment import Segmentation, segment_nxd, segment_planes
 
 __all__ = ["Pipeline", "FrameResult", "STAGES"]
 
-STAGES = ("denoise", "segment", "surfaces", "register", "merge", "deferred")
+STAGES = ("denoise", "segment", "surfaces", "register", "merge", "volume", "deferred")
 # From this many pixels on, registration and merging thin the frame (a depth camera gives far
 # more points than they need).
 _DENSE_FRAME = 200_000
@@ -121,6 +123,7 @@ class Pipeline:
             cell_size=merge.cell_size, max_normal_angle=merge.max_normal_angle, max_plane_distance=merge.max_plane_distance,
             bridge=merge.bridge, min_overlap=merge.min_overlap, nonplanar=merge.nonplanar,
         )
+        self.volume: TSDFVolume | None = None
         self.frames = 0
         self.late = 0
         self.deferred_runs = 0
@@ -208,6 +211,15 @@ class Pipeline:
                                           timestamp=frame.timestamp)
         lap("merge")
 
+        if self.config.merge.volume != "off":
+            if self.volume is None:
+                self.volume = TSDFVolume(self.config.merge.voxel_size or self.model.cell_size)
+            mask = finite if self.config.merge.volume == "all" else finite & (segmentation.labels == 0)
+            if mask.any():
+                self.volume.integrate(points, tracked.T_world_sensor, range_sigma=np.where(finite, sigma, 1.0), mask=mask,
+                                      pose_covariance=tracked.step_covariance)
+        lap("volume")
+
         budget = self._budget_ms(frame)
         every = self.config.run.remesh_every
         if every and (self.frames + 1) % every == 0:
@@ -246,9 +258,17 @@ class Pipeline:
         return result
 
     def finish(self) -> list[Surface]:
-        """Do all deferred work and return the model's surfaces (world frame, with LOD order)."""
+        """Do all deferred work and return the model's surfaces (world frame, with LOD order).
+
+        With the volumetric path on, the volume's mesh (marching cubes) comes last.
+        """
         self._remesh_queue = []
-        return self.model.surfaces(lod=True)
+        surfaces = self.model.surfaces(lod=True)
+        if self.volume is not None and self.volume.n_blocks:
+            mesh = self.volume.extract_mesh()
+            if mesh.n_vertices:
+                surfaces.append(mesh)
+        return surfaces
 
     # ------------------------------------------------------------------
     # Checkpoints.
@@ -263,6 +283,8 @@ class Pipeline:
         """
         path = Path(path)
         arrays = self.model.to_arrays(prefix="model/")
+        if self.volume is not None:
+            arrays.update(self.volume.to_arrays(prefix="volume/"))
         arrays.update({f"extra/{name}": value for name, value in (extra or {}).items()})
         arrays.update({f"tracker/{name}": value for name, value in self.tracker.state().items()})
         arrays.update({
@@ -294,6 +316,8 @@ class Pipeline:
         config = PipelineConfig.from_dict(tomllib.loads(str(arrays["pipeline/config"])), source=f"{path} (config)")
         pipeline = cls(config)
         pipeline.model = GlobalModel.from_arrays(arrays, prefix="model/", source=path)
+        if "volume/settings" in arrays:
+            pipeline.volume = TSDFVolume.from_arrays(arrays, prefix="volume/")
         pipeline.tracker.restore({name[len("tracker/"):]: value for name, value in arrays.items() if name.startswith("tracker/")})
         pipeline.frames, pipeline.late, pipeline.deferred_runs, pipeline.postponed = (int(v) for v in arrays["pipeline/counters"])
         pipeline.checkpoint_extra = {name[len("extra/"):]: value for name, value in arrays.items() if name.startswith("extra/")}

@@ -258,6 +258,39 @@ class TSDFVolume:
         """Number of allocated blocks of 8^3 voxels."""
         return self._n_blocks
 
+    def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
+        """The volume as named arrays (for checkpoints; `from_arrays` rebuilds it exactly)."""
+        n = self._n_blocks
+        settings = np.array([self.voxel_size, self.truncation, np.nan if self.max_weight is None else self.max_weight,
+                             float(self.angle_weighting), float(self.n_frames)])
+        arrays = {"settings": settings, "coords": self._coords[:n], "distance": self._distance[:n],
+                  "weight": self._weight[:n], "m2": self._m2[:n]}
+        return {prefix + name: value for name, value in arrays.items()}
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], prefix: str = "") -> TSDFVolume:
+        """Rebuild a volume written by `to_arrays`."""
+        voxel_size, truncation, max_weight, angle_weighting, n_frames = (float(v) for v in arrays[prefix + "settings"])
+        volume = cls(voxel_size, truncation=truncation, max_weight=None if math.isnan(max_weight) else max_weight,
+                     angle_weighting=bool(angle_weighting))
+        volume.n_frames = int(n_frames)
+        coords = np.asarray(arrays[prefix + "coords"], np.int32)
+        n = len(coords)
+        capacity = 64
+        while capacity < n:
+            capacity *= 2
+        volume._coords = np.zeros((capacity, 3), np.int32)
+        volume._coords[:n] = coords
+        for name in ("distance", "weight", "m2"):
+            grown = np.zeros((capacity, _BLOCK, _BLOCK, _BLOCK), np.float32)
+            grown[:n] = arrays[prefix + name]
+            setattr(volume, f"_{name}", grown)
+        volume._table_keys = np.zeros((2 * capacity, 3), np.int32)
+        volume._table_slots = np.full(2 * capacity, -1, np.int32)
+        _rehash(volume._table_keys, volume._table_slots, volume._coords, n)
+        volume._n_blocks = n
+        return volume
+
     @property
     def block_coordinates(self) -> np.ndarray:
         """``(n_blocks, 3)`` int32 block indices; block ``b`` holds voxels ``8 b .. 8 b + 7``."""
