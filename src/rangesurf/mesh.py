@@ -319,7 +319,14 @@ def _segment_surface(points, distance, range_sigma, segmentation, label, rows, c
         # Noise along the ray, seen along the normal: sigma |cos(incidence)|.
         rays = vertices / np.maximum(distance[rows, cols], 1e-12)[:, None]
         cosine = np.abs(np.einsum("ij,ij->i", rays, normals))
-        uncertainty["UL1"] = np.nan_to_num(range_sigma[rows, cols] * cosine, nan=range_sigma[rows, cols]).astype(np.float32)
+        along_normal = np.nan_to_num(range_sigma[rows, cols] * cosine, nan=range_sigma[rows, cols])
+        # What denoising removed, estimated from the data: a planar segment's fit residual is the noise
+        # left after denoising; where it is below what the sensor model predicts, scale down.
+        residual = segmentation.residuals[label]
+        predicted = float(np.sqrt(np.mean(along_normal**2))) if len(along_normal) else 0.0
+        if np.isfinite(residual) and predicted > 0:
+            along_normal = along_normal * min(1.0, float(residual) / predicted)
+        uncertainty["UL1"] = along_normal.astype(np.float32)
     if np.isfinite(segmentation.residuals[label]):
         uncertainty["UL2"] = np.full(len(rows), segmentation.residuals[label], np.float32)
     return Surface(

@@ -45,6 +45,10 @@ from rangesurf.mesh import Surface, _grid_faces
 __all__ = ["PlanarPatch", "Observations", "CELL_FIELDS"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+# Correlation of a surface point's errors between frames (see PlanarPatch.surface).
+_SHARED_ERROR = 0.3
+# One sigma of patch-fit error per metre a fused vertex lies off its patch's plane (beyond its noise).
+_OFF_PLANE_SIGMA = 0.75
 
 # Per-cell sums, all weighted by the observation weight w = 1 / (total variance) except `information`
 # (sum of 1 / sensor variance) and `count`.
@@ -347,13 +351,22 @@ class PlanarPatch:
         weight = self.sums["weight"]
         spread = np.maximum(self.sums["hh"] / weight - h**2, 0.0)
         noise_mean = self.sums["noise"] / weight
-        ul1 = np.sqrt(1.0 / self.sums["information"])
-        ul2 = np.sqrt(self.sums["fit"] / weight)
+        # Averaging n observations shrinks their noise by sqrt(n) only if the errors are independent;
+        # a denoised frame's errors are partly shared between frames (the same crease rounded the same
+        # way), so a share of the variance never averages out (equicorrelated mean: var (rho + (1 -
+        # rho) / n)); rho calibrated on simulated sequences (benchmarks/calibration.py).
+        ul1 = np.sqrt((1.0 - _SHARED_ERROR) / self.sums["information"] + _SHARED_ERROR * noise_mean)
+        a, b, c = self.fitted_plane()
+        # Patch fit: a fused vertex off its patch's plane by more than its noise explains shows local
+        # model error there (a rounded crease, a leftover flying pixel); 0.75 of that distance counts
+        # as one sigma, so that the combined +-2 sigma band reaches past the plane (calibrated on
+        # simulated sequences: `rangesurf.uncertainty`, benchmarks/calibration.py).
+        off_plane = np.abs(h - (a * u + b * v + c))
+        ul2 = np.sqrt(np.maximum((_OFF_PLANE_SIGMA * off_plane) ** 2 - ul1**2, 0.0))
         # Registration: the weighted mean variance of the observations' poses; merging: how much the
         # fused heights disagree beyond what the sensor noise explains.
         ul3 = np.sqrt(self.sums["registration"] / weight + np.maximum(spread - noise_mean, 0.0))
         fill_rows, fill_columns = np.nonzero(filled)
-        a, b, c = self.fitted_plane()
         fill_u = (fill_columns + column0 + 0.5) * self.cell_size
         fill_v = (fill_rows + row0 + 0.5) * self.cell_size
         fill_h = a * fill_u + b * fill_v + c
@@ -377,7 +390,7 @@ class PlanarPatch:
             faces[facing < 0] = faces[facing < 0][:, ::-1]
         gap = bridge * self.cell_size
         fill_ul1 = np.full(len(fill_u), np.median(ul1) if len(ul1) else 0.0)
-        fill_ul2 = np.full(len(fill_u), np.median(ul2) if len(ul2) else 0.0)
+        fill_ul2 = np.zeros(len(fill_u))  # on the fitted plane by construction
         uncertainty = {
             "UL1": np.r_[ul1, fill_ul1], "UL2": np.r_[ul2, fill_ul2], "UL3": np.r_[ul3, np.full(len(fill_u), gap)],
         }
