@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import json
 import os
+import tokenize
 import zipfile
 import zlib
 from collections.abc import Iterator
@@ -174,7 +175,9 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
             raise FormatError(path, "holds a single array (.npy data), not an .npz archive of named arrays")
         with archive:
             return {name: archive[name] for name in archive.files}
-    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zlib.error) as error:
+    # numpy parses the .npy header with Python's tokenizer: a corrupted header raises SyntaxError or
+    # tokenize.TokenError, not ValueError.
+    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, zipfile.BadZipFile, zlib.error) as error:
         if isinstance(error, FormatError):
             raise
         # allow_pickle=False turns object arrays into ValueError too.
@@ -259,7 +262,7 @@ def read_npy(path: str | os.PathLike, *, sensor: str | SensorModel | None = None
         raise FormatError(path, "empty file; expected a NumPy .npy array")
     try:
         array = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError) as error:
+    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError) as error:
         raise FormatError(path, f"not a readable NumPy .npy array ({error})") from None
     if not isinstance(array, np.ndarray):
         raise FormatError(path, "holds an .npz archive; name it .npz to read it as a rangesurf frame")

@@ -495,8 +495,12 @@ def _choose_sensor(path: Path, header: _Header, sensor: SensorModel | None) -> S
 def _viewpoint_to_pose(path: Path, viewpoint: tuple[float, ...]) -> np.ndarray | None:
     translation = np.asarray(viewpoint[:3], dtype=np.float64)
     quaternion = np.asarray(viewpoint[3:], dtype=np.float64)
-    norm = np.linalg.norm(quaternion)
-    if norm < 1e-9:
+    if not np.isfinite(translation).all() or not np.isfinite(quaternion).all():
+        raise FormatError(path, f"VIEWPOINT must be 7 finite numbers, got {list(viewpoint)}", where="field 'VIEWPOINT'")
+    # Scaled first: the norm of huge (but finite) components would overflow.
+    scale = float(np.abs(quaternion).max())
+    norm = scale * float(np.linalg.norm(quaternion / scale)) if scale > 0 else 0.0
+    if not (1e-9 <= norm < np.inf):
         raise FormatError(path, "VIEWPOINT quaternion (qw qx qy qz) is zero", where="field 'VIEWPOINT'")
     quaternion = quaternion / norm
     if np.all(translation == 0) and abs(abs(quaternion[0]) - 1) < 1e-12:

@@ -373,6 +373,13 @@ class _BinaryBody:
             else:
                 count_type = np.dtype(prop.count_dtype)
                 plan.append((count_type.itemsize, np.dtype(prop.dtype).itemsize, True, count_type.kind == "i"))
+        # Every record takes at least its scalars and list lengths: a declared count that cannot fit in
+        # the bytes left is refused before anything of that size is allocated.
+        smallest = sum(size for size, _, _, _ in plan)
+        available = len(data) - self.offset
+        if element.count * max(smallest, 1) > available:
+            raise self._truncated(element, f"{element.count} records of at least {max(smallest, 1)} bytes need "
+                                           f"{element.count * max(smallest, 1)} bytes, the file has {available} left")
         positions = [[0] * element.count for _ in plan]
         position = self.offset
         try:

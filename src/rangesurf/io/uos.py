@@ -285,12 +285,13 @@ def _parse_points(path: Path, data: bytes) -> tuple[np.ndarray, int | None]:
             where=where(parsed.bad.line),
         )
     values = parsed.values.reshape(-1, columns)
-    # NaN reflectance means unknown; Inf is an error. Whole-array checks
-    # first: the per-point ones below are only needed to name the line.
-    if not (np.isfinite(values[:, :3]).all() and (columns == 3 or not np.isinf(values[:, 3]).any())):
-        finite = np.isfinite(values[:, :3]).all(axis=1)
-        if columns > 3:
-            finite &= ~np.isinf(values[:, 3])
+    # NaN reflectance means unknown; Inf is an error, and so is a value past float32 (frames keep
+    # float32: it would become Inf there). Whole-array checks first: the per-point ones below are
+    # only needed to name the line.
+    limit = float(np.finfo(np.float32).max)
+    magnitude = np.abs(np.nan_to_num(values, nan=0.0))
+    if not (np.isfinite(values[:, :3]).all() and (magnitude <= limit).all()):
+        finite = np.isfinite(values[:, :3]).all(axis=1) & (magnitude <= limit).all(axis=1)
         line = int(point_lines[np.argmin(finite)])
         raise FormatError(path, f"coordinates must be finite numbers, got {line_text(line)!r}", where=where(line))
     return values, header_width
