@@ -115,3 +115,28 @@ def test_mutated_header_numbers(suffix, choice, value):
     match = numbers[int(choice * len(numbers))]
     mutated = header[: match.start()] + value + header[match.end():]
     _read(mutated.encode("latin-1") + seed[end:], suffix)
+
+
+def test_regression_binary_ply_with_an_infinite_coordinate(tmp_path):
+    """Found by fuzz/fuzz_readers.py: a float turned into Inf reached the frame's checks as a ValueError."""
+    path = tmp_path / "inf.ply"
+    rs.save(path, rs.simulate.simulate_sequence("arena", "sr3000", 1, seed=0)[0][0])
+    data = bytearray(path.read_bytes())
+    body = data.index(b"end_header\n") + len(b"end_header\n")
+    data[body: body + 4] = np.float32(np.inf).tobytes()  # the first vertex's x
+    path.write_bytes(bytes(data))
+    with pytest.raises(FormatError, match="inf.ply"):
+        rs.load(path)
+
+
+def test_regression_npz_with_an_unknown_zip_version(tmp_path):
+    """Found by fuzz/fuzz_readers.py: zipfile raises NotImplementedError for a version it does not know."""
+    path = tmp_path / "version.npz"
+    rs.save(path, rs.simulate.simulate_sequence("arena", "sr3000", 1, seed=0)[0][0])
+    data = bytearray(path.read_bytes())
+    central = data.index(b"PK\x01\x02")
+    data[central + 6: central + 8] = (122).to_bytes(2, "little")  # "version needed to extract": 12.2
+    data[4:6] = (122).to_bytes(2, "little")
+    path.write_bytes(bytes(data))
+    with pytest.raises(FormatError, match="version.npz"):
+        rs.load(path)

@@ -141,7 +141,14 @@ def iter_frames(
             options["topic"] = topic
         elif topic is not None:
             raise ValueError(f"topic={topic!r} applies to ROS bags only, not {file}")
-        yield from reader(file, **options)
+        try:
+            yield from reader(file, **options)
+        except FormatError:
+            raise
+        except ValueError as error:
+            # A frame refused what the file holds (Inf ranges, a grid that fits no sensor): still a
+            # problem of the file, reported as one.
+            raise FormatError(file, f"holds values a frame cannot take: {error}") from error
 
 
 def load(

@@ -176,8 +176,9 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
         with archive:
             return {name: archive[name] for name in archive.files}
     # numpy parses the .npy header with Python's tokenizer: a corrupted header raises SyntaxError or
-    # tokenize.TokenError, not ValueError.
-    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, zipfile.BadZipFile, zlib.error) as error:
+    # tokenize.TokenError, not ValueError; zipfile raises NotImplementedError for unknown zip versions.
+    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, NotImplementedError, zipfile.BadZipFile,
+            zlib.error) as error:
         if isinstance(error, FormatError):
             raise
         # allow_pickle=False turns object arrays into ValueError too.
