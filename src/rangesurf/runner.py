@@ -168,6 +168,10 @@ def run(
     """
     out = Path(out)
     checkpoint = out / _CHECKPOINT
+    # A run killed while writing leaves its temporary files (never a half-written output): clear them.
+    for name in (*OUTPUTS, _CHECKPOINT):
+        for leftover in out.glob(f".{name}.*"):
+            leftover.unlink(missing_ok=True)
     if resume:
         if not checkpoint.is_file():
             raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume from")
