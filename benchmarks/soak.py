@@ -1,0 +1,79 @@
+"""Soak: a long simulated run through the pipeline, with memory (RSS) and per-frame time sampled.
+
+Run: ``.venv/bin/python benchmarks/soak.py [N_FRAMES]`` (default 10,000); writes
+``benchmarks/results/soak.md``. The SR-3000 robot circles the arena again and again (drifting odometry),
+so after the first laps the model stops growing; what must stay flat after warm-up is the process's
+resident memory and the pipeline's time per frame. Reported: RSS and the median frame time at frames
+1,000 and N, their growth, and the least-squares slopes from frame 1,000 on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import resource
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+from threadpoolctl import threadpool_limits  # noqa: E402
+
+from rangesurf import simulate  # noqa: E402
+from rangesurf.bench import machine_description, write_results  # noqa: E402
+from rangesurf.frame import get_sensor  # noqa: E402
+from rangesurf.pipeline import Pipeline  # noqa: E402
+
+
+def rss_mb() -> float:
+    """Current resident set size (Linux /proc), megabytes."""
+    with open("/proc/self/statm") as stream:
+        pages = int(stream.read().split()[1])
+    return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+
+
+def main() -> None:
+    n_frames = int(sys.argv[1]) if len(sys.argv) > 1 else 10_000
+    sensor = get_sensor("sr3000")
+    true_poses = simulate.default_trajectory("arena", n_frames, frame_rate=sensor.frame_rate)
+    odometry = simulate.noisy_odometry(true_poses, seed=9)
+    pipeline = Pipeline()
+    samples = []  # (frame, rss MB, median ms of the last 100 frames)
+    window = []
+    started = time.perf_counter()
+    with threadpool_limits(limits=1, user_api="blas"):
+        sequence = simulate.iter_sequence("arena", sensor, n_frames, seed=9, trajectory=true_poses)
+        for index, (frame, _) in enumerate(sequence):
+            result = pipeline.process(dataclasses.replace(frame, pose=odometry[index]))
+            window.append(result.timings["total"])
+            if (index + 1) % 100 == 0:
+                samples.append((index + 1, rss_mb(), float(np.median(window))))
+                window = []
+                if (index + 1) % 1000 == 0:
+                    print(f"frame {index + 1}: RSS {samples[-1][1]:.1f} MB, {samples[-1][2]:.2f} ms/frame, "
+                          f"{pipeline.model.n_vertices} model vertices", flush=True)
+    elapsed = time.perf_counter() - started
+    table = np.array(samples)
+    after = table[table[:, 0] >= min(1000, n_frames // 2)]
+    first, last = after[0], after[-1]
+    rss_slope = np.polyfit(after[:, 0], after[:, 1], 1)[0] * 1000
+    time_slope = np.polyfit(after[:, 0], after[:, 2], 1)[0] * 1000
+    lines = [
+        f"Machine: {machine_description()}. Command: `.venv/bin/python benchmarks/soak.py {n_frames}`.", "",
+        f"{n_frames} SR-3000 frames of the arena (the robot circles it), default pipeline, drifting odometry; "
+        f"{elapsed / 60:.1f} min including the simulation. Per-frame time: median of each 100 frames (pipeline only).", "",
+        "| measure | at frame {:d} | at frame {:d} | growth | slope per 1,000 frames |".format(int(first[0]), int(last[0])),
+        "|---|---:|---:|---:|---:|",
+        f"| resident memory (MB) | {first[1]:.1f} | {last[1]:.1f} | {100 * (last[1] / first[1] - 1):+.2f} % | {rss_slope:+.3f} MB |",
+        f"| time per frame (ms) | {first[2]:.2f} | {last[2]:.2f} | {100 * (last[2] / first[2] - 1):+.2f} % | {time_slope:+.4f} ms |",
+        "", f"Peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB; model at the end: "
+        f"{pipeline.model.n_vertices} vertices in {len(pipeline.model.patches)} patches; late frames {pipeline.late}.",
+        "", f"Load average at the end: {os.getloadavg()[0]:.2f}.",
+    ]
+    write_results(Path(__file__).parent / "results", "soak.md", lines)
+
+
+if __name__ == "__main__":
+    main()
