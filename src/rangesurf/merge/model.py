@@ -243,8 +243,15 @@ class GlobalModel:
         candidates = []
         # The median distance from a plane is as well known from 2,000 points as from all of them.
         sample = observations.points[:: max(1, len(observations.points) // 2000)]
+        # Only patches whose box comes within touching distance: the cost per frame stays the same
+        # however large the model grows.
+        margin = reach + (self.bridge + 2) * self.cell_size
+        low, high = observations.points.min(axis=0) - margin, observations.points.max(axis=0) + margin
         for index, patch in enumerate(self.patches):
             if patch.normal @ plane[:3] < cosine:
+                continue
+            patch_low, patch_high = patch.bounds()
+            if (patch_low > high).any() or (patch_high < low).any():
                 continue
             if np.median(patch.distance_to(sample)) > reach:
                 continue

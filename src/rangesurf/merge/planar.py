@@ -114,6 +114,7 @@ class PlanarPatch:
     # Bumped by every change of the cells, so that meshes and plane fits made from them can be cached.
     revision: int = field(default=0, compare=False)
     _plane: tuple[int, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+    _bounds: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.origin = np.asarray(self.origin, np.float64).reshape(3)
@@ -239,6 +240,22 @@ class PlanarPatch:
         image = np.zeros((int(rows.max()) - row0 + 1 + margin, int(columns.max()) - column0 + 1 + margin), np.uint8)
         image[rows - row0, columns - column0] = 1
         return image, column0, row0
+
+    def bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """World axis-aligned bounding box (low, high) of the patch's cells (cached per revision)."""
+        if self._bounds is not None and self._bounds[0] == self.revision:
+            return self._bounds[1], self._bounds[2]
+        if self.n_cells == 0:
+            low = high = self.origin.copy()
+        else:
+            u_range = (self.coordinates[:, 0].min() * self.cell_size, (self.coordinates[:, 0].max() + 1) * self.cell_size)
+            v_range = (self.coordinates[:, 1].min() * self.cell_size, (self.coordinates[:, 1].max() + 1) * self.cell_size)
+            heights = self.sums["h"] / self.sums["weight"]
+            h_range = (float(heights.min()), float(heights.max()))
+            corners = np.array([[u, v, h] for u in u_range for v in v_range for h in h_range]) @ self.axes + self.origin
+            low, high = corners.min(axis=0), corners.max(axis=0)
+        self._bounds = (self.revision, low, high)
+        return low, high
 
     def distance_to(self, points: np.ndarray) -> np.ndarray:
         """Distance of world points from the fitted plane."""
