@@ -128,14 +128,38 @@ def _command_run(args: argparse.Namespace) -> int:
 
     from rangesurf.config import PipelineConfig
     from rangesurf.runner import run
+    from rangesurf.viewer import NullViewer
 
     config = PipelineConfig.load(args.config) if args.config else None
-    # The pipeline's matrices are tiny: a threaded BLAS only adds stalls on a busy machine.
-    with threadpool_limits(limits=1, user_api="blas"):
-        summary = run(args.input, args.out, config=config, frames=args.frames, sensor=args.sensor, seed=args.seed,
-                      overwrite=args.overwrite, resume=args.resume, realtime=args.realtime, progress=not args.quiet)
-    _print_run_summary(summary)
+    viewer = NullViewer()
+    if getattr(args, "view", False):
+        from rangesurf.viewer import Viewer
+
+        viewer = Viewer(host=args.host, port=args.port, folder=args.out)
+        print(f"rangesurf run: viewer at {viewer.url}")
+    with viewer:
+        # The pipeline's matrices are tiny: a threaded BLAS only adds stalls on a busy machine.
+        with threadpool_limits(limits=1, user_api="blas"):
+            summary = run(args.input, args.out, config=config, frames=args.frames, sensor=args.sensor, seed=args.seed,
+                          overwrite=args.overwrite, resume=args.resume, realtime=args.realtime,
+                          progress=not args.quiet, viewer=viewer)
+        _print_run_summary(summary)
+        if getattr(args, "view", False):
+            print(f"rangesurf run: still serving the final model at {viewer.url}; Ctrl-C to stop")
+            try:
+                while True:
+                    time.sleep(3600)
+            except KeyboardInterrupt:
+                pass
     return 0 if summary.stopped is None or summary.stopped.startswith("interrupted") else 1
+
+
+def _command_view(args: argparse.Namespace) -> int:
+    from rangesurf.viewer import view_model
+
+    print(f"rangesurf view: serving {args.folder} (Ctrl-C to stop)")
+    view_model(args.folder, host=args.host, port=args.port)
+    return 0
 
 
 def _command_demo(args: argparse.Namespace) -> int:
@@ -297,6 +321,11 @@ def build_parser() -> argparse.ArgumentParser:
         command.add_argument("--topic", help="ROS bag topic to read")
         command.add_argument("--quiet", action="store_true", help="no progress bar")
 
+    def add_viewer_options(command: argparse.ArgumentParser) -> None:
+        command.add_argument("--port", type=int, default=8080, help="viewer port (default 8080; the next free one if taken)")
+        command.add_argument("--host", default="127.0.0.1",
+                             help="interface to bind (default 127.0.0.1: this machine only; 0.0.0.0 exposes it to the network)")
+
     simulate = commands.add_parser("simulate", help="simulate a sequence with ground truth")
     add_simulation_options(simulate, frames=10, out=None)
     simulate.set_defaults(handler=_command_simulate)
@@ -312,7 +341,14 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--resume", action="store_true", help="continue from --out/checkpoint.npz")
     run.add_argument("--realtime", action="store_true", help="feed frames at the sensor's frame rate")
     run.add_argument("--quiet", action="store_true", help="no progress bar")
+    run.add_argument("--view", action="store_true", help="show the model growing in the browser (viser; needs rangesurf[viewer])")
+    add_viewer_options(run)
     run.set_defaults(handler=_command_run)
+
+    view = commands.add_parser("view", help="show a run's saved model in the browser (viser; needs rangesurf[viewer])")
+    view.add_argument("folder", type=Path, help="a run's output folder (model.ply; trajectory.txt, timings.csv, metrics.json if present)")
+    add_viewer_options(view)
+    view.set_defaults(handler=_command_view)
 
     demo = commands.add_parser("demo", help="run a built-in simulated sequence through the whole pipeline")
     add_simulation_options(demo, frames=200, out="demo-out")

@@ -135,6 +135,7 @@ def run(
     resume: bool = False,
     realtime: bool = False,
     progress: bool = True,
+    viewer=None,
 ) -> RunSummary:
     """Run the pipeline over an input and write every output into ``out``.
 
@@ -161,11 +162,17 @@ def run(
         frames the pipeline did not finish within their period.
     progress : bool
         Show a progress bar.
+    viewer : rangesurf.viewer.Viewer, optional
+        Shown every frame and the final model (`rangesurf.viewer`); a
+        do-nothing `NullViewer` by default.
 
     Returns
     -------
     RunSummary
     """
+    from rangesurf.viewer import NullViewer
+
+    viewer = viewer if viewer is not None else NullViewer()
     out = Path(out)
     checkpoint = out / _CHECKPOINT
     # A run killed while writing leaves its temporary files (never a half-written output): clear them.
@@ -220,6 +227,7 @@ def run(
                 if wait > 0:
                     time.sleep(wait)
             result = pipeline.process(frame)
+            viewer.update(result, pipeline)
             last, last_frame = result, frame
             known.setdefault("frame_period_ms", config.run.budget_ms or 1000.0 / frame.sensor.frame_rate)
             truths.append(None if item.truth is None else item.truth.T_world_sensor)
@@ -240,6 +248,7 @@ def run(
     surfaces = pipeline.finish()
     summary.late, summary.postponed = pipeline.late, pipeline.postponed
     _write_outputs(out, pipeline, surfaces, rows, truths, known, summary, last, last_frame)
+    viewer.finish(surfaces)
     return summary
 
 

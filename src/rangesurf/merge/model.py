@@ -301,6 +301,23 @@ class GlobalModel:
             result.append(surface)
         return result + list(self.others)
 
+    def meshed_surfaces(self) -> dict[str, Surface]:
+        """The surfaces meshed so far, by a stable key, without meshing anything.
+
+        A patch that changed since its last mesh shows that mesh until
+        `refresh` (the pipeline's deferred work) makes a new one; for live
+        display, where meshing on the caller's thread would break the
+        frame budget.
+        """
+        snapshot = {}
+        for patch in self.patches:
+            entry = self._meshes.get(id(patch))
+            if entry is not None:
+                snapshot[f"p{id(patch):x}"] = entry[2]
+        for surface in self.others:
+            snapshot[f"o{id(surface):x}"] = surface
+        return snapshot
+
     def stale_patches(self, *, lod: bool = True) -> list[PlanarPatch]:
         """The patches whose cached mesh is out of date, most cells first."""
         return sorted((patch for patch in self.patches if not self._fresh(patch, lod)), key=lambda patch: -patch.n_cells)
