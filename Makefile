@@ -22,7 +22,8 @@ test: $(INSTALLED)
 	$(BIN)/python -m pytest
 
 bench: $(INSTALLED)
-	$(BIN)/python benchmarks/foundation.py
+	$(BIN)/pip install --quiet -e ".[bench]"
+	$(BIN)/rangesurf bench
 
 clean:
 	rm -rf $(VENV) demo-out .pytest_cache

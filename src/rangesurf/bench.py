@@ -210,3 +210,69 @@ def write_results(folder: str | os.PathLike, name: str, lines: list[str]) -> str
 def default_data_root() -> Path:
     """``../shared/data`` beside the repository checkout (where tests find it too)."""
     return Path(__file__).resolve().parents[2].parent / "shared" / "data"
+
+
+# Every side-by-side benchmark of benchmarks/, in pipeline order, with what it compares.
+SUITE = {
+    "foundation": "readers and simulator against Open3D and NumPy",
+    "diffusion": "anisotropic diffusion against medpy",
+    "phase": "phase-preserving denoising against phasecongruency",
+    "denoise_quality": "denoising quality against OpenCV, scikit-image and medpy",
+    "denoise_speed": "the whole denoising stage",
+    "segmentation": "normals and planar segmentation against OpenCV RgbdNormals / RgbdPlane and Open3D",
+    "lod_speed": "triangulation and progressive order against fast-simplification",
+    "lod_quality": "level-of-detail accuracy against fast-simplification",
+    "registration": "ICP against OpenCV ICPOdometry and Open3D",
+    "drift": "tracking drift over long sequences (ATE / RPE)",
+    "tsdf": "volumetric fusion against Open3D",
+    "glyphs": "uncertainty geometry",
+    "calibration": "uncertainty calibration against ground truth",
+    "pipeline": "the whole pipeline against the same pipeline assembled from OpenCV and Open3D",
+    "viewer": "the live viewer on a 25 fps stream",
+}
+
+
+def run_suite(benchmarks: str | os.PathLike, names: list[str] | None = None) -> Path:
+    """Run benchmark scripts of ``benchmarks/`` one after another and gather their tables in ``benchmarks/results.md``.
+
+    Each script writes its own ``results/<name>.md``; scripts not run this
+    time keep their last recorded results, which are gathered as well (with
+    their date), so the file always shows every comparison.
+    """
+    import subprocess
+    import sys
+    import time
+
+    from rangesurf.io._common import atomic_write
+
+    folder = Path(benchmarks)
+    names = list(SUITE) if names is None else names
+    unknown = [name for name in names if name not in SUITE]
+    if unknown:
+        raise ValueError(f"unknown benchmark(s) {', '.join(unknown)}; expected some of {', '.join(SUITE)}")
+    ran = {}
+    for name in names:
+        script = folder / f"{name}.py"
+        if not script.is_file():
+            raise FileNotFoundError(f"{script}: benchmark script not found (rangesurf bench runs from a source checkout)")
+        print(f"== {name}: {SUITE[name]}", flush=True)
+        start = time.perf_counter()
+        process = subprocess.run([sys.executable, str(script)], env={**os.environ, "OMP_NUM_THREADS": "1"})
+        ran[name] = (process.returncode, time.perf_counter() - start)
+    lines = ["# rangesurf benchmarks", "", f"Machine: {machine_description()}. Regenerate with `rangesurf bench` "
+             "(all, about half an hour) or `rangesurf bench NAME ...`; each section is the named script's "
+             "`benchmarks/results/NAME.md`.", ""]
+    for name, description in SUITE.items():
+        result = folder / "results" / f"{name}.md"
+        status = ""
+        if name in ran:
+            code, seconds = ran[name]
+            status = f" (run now, {seconds:.0f} s{', FAILED' if code else ''})"
+        elif result.is_file():
+            status = " (last recorded run)"
+        lines += [f"## {name}: {description}{status}", ""]
+        lines += [result.read_text().strip(), ""] if result.is_file() else ["Not recorded yet.", ""]
+    target = folder / "results.md"
+    with atomic_write(target, "w") as stream:
+        stream.write("\n".join(lines))
+    return target

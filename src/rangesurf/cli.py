@@ -283,9 +283,16 @@ def _command_lod(args: argparse.Namespace) -> int:
 def _command_bench(args: argparse.Namespace) -> int:
     from rangesurf import bench
 
-    data_root = args.data or bench.default_data_root()
-    print(bench.format_results(bench.run_foundation_benchmarks(data_root)))
+    folder = args.benchmarks or Path(__file__).resolve().parents[2] / "benchmarks"
+    target = bench.run_suite(folder, args.names or None)
+    print(f"rangesurf bench: wrote {target}")
     return 0
+
+
+def _bench_names() -> list[str]:
+    from rangesurf.bench import SUITE
+
+    return list(SUITE)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -376,8 +383,9 @@ def build_parser() -> argparse.ArgumentParser:
     lod.add_argument("--panels", type=int, default=4, help="levels shown (default 4)")
     lod.set_defaults(handler=_command_lod)
 
-    bench = commands.add_parser("bench", help="time rangesurf against peer libraries (ratios)")
-    bench.add_argument("--data", type=Path, help="real data folder (default ../shared/data beside the checkout)")
+    bench = commands.add_parser("bench", help="run the side-by-side benchmarks against peer libraries; gather benchmarks/results.md")
+    bench.add_argument("names", nargs="*", help="benchmarks to run (default all): " + ", ".join(_bench_names()))
+    bench.add_argument("--benchmarks", type=Path, help="the benchmarks/ folder (default: the checkout's)")
     bench.set_defaults(handler=_command_bench)
     return parser
 
