@@ -830,11 +830,16 @@ def write_ply(path: str | Path, frame: RangeFrame) -> None:
     lines.append(f"comment {_COMMENT_PREFIX}timestamp {frame.timestamp!r}")
     lines += [f"obj_info num_cols {width}", f"obj_info num_rows {height}", f"element vertex {len(points)}"]
     lines += [f"property float {name}" for name, _ in fields]
-    lines += [f"element range_grid {height * width}", "property list uchar int vertex_indices", "end_header"]
+    lines += [f"element range_grid {height * width}", "property list uchar int vertex_indices"]
+    _write_binary(path, lines, vertices, grid)
+
+
+def _write_binary(path: str | Path, header: list[str], *blocks: np.ndarray) -> None:
+    """Header lines (``end_header`` added) and binary element blocks, written atomically."""
     with atomic_write(path, "wb") as stream:
-        stream.write(("\n".join(lines) + "\n").encode("utf-8"))
-        stream.write(vertices.tobytes())
-        stream.write(grid.tobytes())
+        stream.write(("\n".join([*header, "end_header"]) + "\n").encode("utf-8"))
+        for block in blocks:
+            stream.write(block.tobytes())
 
 
 def write_mesh_ply(path: str | Path, surfaces: list) -> None:
@@ -884,8 +889,5 @@ def write_mesh_ply(path: str | Path, surfaces: list) -> None:
     lines = ["ply", "format binary_little_endian 1.0", "comment rangesurf model: uncertainty levels in metres along the normal",
              f"element vertex {total}"]
     lines += [f"property {'int' if kind == '<i4' else 'float'} {name}" for name, kind in fields]
-    lines += [f"element face {len(face_array)}", "property list uchar int vertex_indices", "end_header"]
-    with atomic_write(path, "wb") as stream:
-        stream.write(("\n".join(lines) + "\n").encode("ascii"))
-        stream.write(vertices.tobytes())
-        stream.write(records.tobytes())
+    lines += [f"element face {len(face_array)}", "property list uchar int vertex_indices"]
+    _write_binary(path, lines, vertices, records)
