@@ -30,7 +30,7 @@ Examples
 --------
 >>> import numpy as np
 >>> from rangesurf.mesh import Surface
->>> vertices = np.array([[0.0, 0, 2.01], [1, 0, 1.98], [0, 1, 2.0]])
+>>> vertices = np.array([[0.0, 0, 2.01], [1, 0, 1.97], [0, 1, 2.0]])
 >>> surface = Surface(vertices, [[0, 1, 2]], np.tile([0, 0, -1.0], (3, 1)), np.full((3, 2), -1),
 ...                   uncertainty={"UL1": np.full(3, 0.01)})
 >>> coverage([surface], np.array([[0.0, 0, -1, 2.0]]))["UL1"]
