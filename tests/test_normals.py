@@ -7,9 +7,12 @@ from rangesurf import simulate
 from rangesurf.denoise import denoise_range
 from rangesurf.edges import surface_boundaries
 from rangesurf.frame import PinholeProjection, get_sensor
+from rangesurf._planefit import add_point
 from rangesurf.normals import (
     _box_normals_reference,
     _inverse_depth_reference,
+    _plane_fit_reference,
+    _plane_normal,
     depth_discontinuities,
     estimate_normals,
     normal_angle_error,
@@ -68,15 +71,50 @@ def test_generic_kernel_matches_numpy_reference():
 
 @pytest.mark.parametrize("size", [5, 9])
 def test_pinhole_kernel_matches_numpy_reference(size):
+    """Every pixel that took the window, the border's clipped windows included."""
     rng = np.random.default_rng(4)
     projection = PinholeProjection(fx=100.0, fy=100.0, cx=20.0, cy=15.0)
     points = plane_points(TILTED, 2.0, projection=projection, shape=(30, 40))
     points *= (1 + rng.normal(0, 0.002, points.shape[:2]))[..., None].astype(np.float32)
     normals, radius = estimate_normals(points, projection=projection, method="box", window=size, return_window=True)
     reference = _inverse_depth_reference(points, projection, size)
-    full = radius == size // 2
-    assert full.sum() > 200
-    assert np.nanmax(normal_angle_error(normals, reference)[full]) < 0.05
+    used = radius == size // 2
+    assert used.sum() > 1000 and used[0, 0] and used[-1, 20]
+    assert np.isfinite(reference[used]).all()
+    assert np.max(normal_angle_error(normals, reference)[used]) < 0.05
+
+
+def test_adaptive_ladder_matches_numpy_reference_at_each_size():
+    """With a noise model, each pixel's normal is the reference fit over the window it chose."""
+    rng = np.random.default_rng(5)
+    projection = PinholeProjection(fx=100.0, fy=100.0, cx=25.0, cy=20.0)
+    points = plane_points(TILTED, 2.0, projection=projection, shape=(40, 50))
+    points *= (1 + rng.normal(0, 0.001, points.shape[:2]))[..., None].astype(np.float32)
+    points[10:14, 30:34] = np.nan  # a hole: windows around it shrink
+    normals, radius = estimate_normals(points, projection=projection, range_sigma=0.002, return_window=True)
+    for half in (2, 5, 7):
+        chosen = radius == half
+        assert chosen.any()
+        reference = _inverse_depth_reference(points, projection, 2 * half + 1)
+        assert np.max(normal_angle_error(normals, reference)[chosen]) < 0.05
+
+
+def test_plane_normal_matches_eigh():
+    """The Newton-method plane fit of the fallback against NumPy's eigen decomposition."""
+    rng = np.random.default_rng(6)
+    normal = np.zeros(3)
+    for spread in (1e-3, 0.1, 0.5, 1.0):
+        points = rng.normal(0, 1, (25, 3)) * (1.0, 0.7, spread) + (0.2, -0.1, 2.0)
+        sums = np.zeros(10)
+        for x, y, z in points:
+            add_point.py_func(sums, x, y, z)
+        assert _plane_normal(sums, normal)
+        reference, _ = _plane_fit_reference(points)
+        assert abs(abs(normal @ reference) - 1) < 1e-9
+    collinear = np.zeros(10)
+    for t in range(5):
+        add_point.py_func(collinear, float(t), 2.0 * t, 0.0)
+    assert not _plane_normal(collinear, normal)
 
 
 def test_windows_never_mix_across_a_depth_step():

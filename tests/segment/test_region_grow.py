@@ -2,12 +2,14 @@
 
 import numpy as np
 import pytest
+from scipy import ndimage
 
 from rangesurf import simulate
 from rangesurf.denoise import denoise_range
 from rangesurf.frame import get_sensor
 from rangesurf.normals import estimate_normals
-from rangesurf.segment import Segmentation, grow_regions
+from rangesurf._planefit import planes_from_moments
+from rangesurf.segment import Segmentation, grow_regions, region_grow
 from rangesurf.segment.evaluate import evaluate_segmentation, truth_segmentation
 
 SR3000 = get_sensor("sr3000")
@@ -196,3 +198,111 @@ def test_refine_upsampled_checks_its_inputs():
         refine_upsampled(plane, coarse, 3, range_sigma=0.002)
     with pytest.raises(ValueError, match="factor"):
         refine_upsampled(plane, coarse, 0, range_sigma=0.002)
+
+
+# --------------------------------------------------------------------------
+# Kernels against plain NumPy references written from their definitions.
+# --------------------------------------------------------------------------
+
+
+def moments_reference(points, labels, n_labels):
+    """(n_labels, 10) sums n, x, y, z, xx, xy, xz, yy, yz, zz per label > 0."""
+    moments = np.zeros((n_labels, 10))
+    p = points.astype(np.float64)
+    for label in range(1, n_labels):
+        x, y, z = p[labels == label].T
+        moments[label] = [x.size, x.sum(), y.sum(), z.sum(), (x * x).sum(), (x * y).sum(), (x * z).sum(),
+                          (y * y).sum(), (y * z).sum(), (z * z).sum()]
+    return moments
+
+
+def noisy_scene(seed):
+    """Points of three planes with noise and holes, and a labelling of them with some pixels free."""
+    rng = np.random.default_rng(seed)
+    points = on_plane((0, 0, -1), 2.5)
+    left = on_plane((0.6, 0, -1), 1.5)
+    points[:, :60] = left[:, :60]
+    floor = on_plane((0, -1, -0.4), 1.2)
+    points[110:] = floor[110:]
+    points += rng.normal(0, 0.003, points.shape)
+    points[rng.random(SR3000.shape) < 0.02] = np.nan
+    labels = np.where(np.arange(176) < 60, 1, 2)[None, :].repeat(144, axis=0).astype(np.int32)
+    labels[110:] = 3
+    labels[~np.isfinite(points).all(axis=2)] = 0
+    return points.astype(np.float32), labels
+
+
+def test_upsampled_labels_match_numpy_reference():
+    points, labels = noisy_scene(7)
+    factor = 3
+    coarse = labels[::factor, ::factor]
+    planes = np.array([[np.nan] * 4, [0.514, 0, -0.857, 1.5 * 0.857], [0, 0, -1, 2.5], [0, -0.928, -0.371, 1.2 * 0.928]])
+    valid = np.isfinite(points).all(axis=2)
+    sigma = np.full(SR3000.shape, 0.004)
+    got, moments = region_grow._upsampled_labels(points, valid, sigma, coarse, factor, planes, 3.0)
+    expected = np.repeat(np.repeat(coarse, factor, axis=0), factor, axis=1)[:144, :176]
+    expected[~valid] = 0
+    with np.errstate(invalid="ignore"):
+        offset = np.abs(np.einsum("ijk,ijk->ij", planes[expected, :3], points.astype(np.float64)) + planes[expected, 3])
+    expected[offset > 3.0 * sigma] = 0
+    assert np.array_equal(got, expected)
+    assert 0 < (expected == 0).sum() < expected.size
+    assert np.allclose(moments, moments_reference(points, expected, len(planes)), rtol=1e-9, atol=1e-9)
+
+
+def absorb_reference(points, distance, sigma, valid, labels, planes, distance_sigmas, depth_jump, sweeps):
+    """Free pixels join the 4-neighbour segment whose plane is nearest, sweep by sweep, each on the previous labels."""
+    labels = labels.copy()
+    height, width = labels.shape
+    for _ in range(sweeps):
+        before = labels.copy()
+        for i, j in zip(*np.nonzero((before == 0) & valid)):
+            best, best_gap = 0, distance_sigmas * sigma[i, j]
+            for qi, qj in ((i, j + 1), (i + 1, j), (i, j - 1), (i - 1, j)):
+                if not (0 <= qi < height and 0 <= qj < width) or before[qi, qj] <= 0:
+                    continue
+                if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
+                    continue
+                other = before[qi, qj]
+                gap = abs(planes[other, :3] @ points[i, j].astype(np.float64) + planes[other, 3])
+                if gap <= best_gap:
+                    best, best_gap = other, gap
+            labels[i, j] = best
+    return labels
+
+
+def test_absorb_matches_numpy_reference():
+    points, labels = noisy_scene(8)
+    valid = np.isfinite(points).all(axis=2)
+    distance = np.where(valid, np.linalg.norm(points, axis=2), np.nan).astype(np.float32)
+    sigma = np.full(SR3000.shape, 0.004)
+    # Free a band along each crease and some scattered pixels.
+    free = np.zeros(SR3000.shape, bool)
+    free[:, 55:66] = True
+    free[104:116] = True
+    free |= np.random.default_rng(9).random(SR3000.shape) < 0.05
+    start = np.where(free, 0, labels).astype(np.int32)
+    moments = moments_reference(points, start, 4)
+    planes, _ = planes_from_moments(moments)
+    for sweeps in (1, 4):
+        got = start.copy()
+        got_moments = moments.copy()
+        left = region_grow._absorb_kernel(points, distance, sigma, valid, got, planes, got_moments, 3.0, 0.05, sweeps)
+        expected = absorb_reference(points, distance, sigma, valid, start, planes, 3.0, 0.05, sweeps)
+        assert np.array_equal(got, expected)
+        assert left == np.count_nonzero(valid & (expected == 0))
+        assert np.allclose(got_moments, moments_reference(points, expected, 4), rtol=1e-9, atol=1e-9)
+
+
+def test_interior_moments_match_numpy_reference():
+    points, labels = noisy_scene(10)
+    low = ndimage.minimum_filter(labels, size=5, mode="nearest").astype(np.float32)
+    high = ndimage.maximum_filter(labels, size=5, mode="nearest").astype(np.float32)
+    got = region_grow._interior_kernel(points, labels, low, high, 4)
+    expected = moments_reference(points, np.where(low == high, labels, 0), 4)
+    assert np.allclose(got, expected, rtol=1e-9, atol=1e-9)
+
+
+def test_label_moments_match_numpy_reference():
+    points, labels = noisy_scene(11)
+    assert np.allclose(region_grow._label_moments(points, labels, 4), moments_reference(points, labels, 4), rtol=1e-9, atol=1e-9)

@@ -10,13 +10,14 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rangesurf._checks import check_point_grid
+from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf.denoise import denoise_range
 from rangesurf.frame import PinholeProjection, RangeFrame
-from rangesurf.normals import estimate_normals
+# One pass for ranges and the Inf check of check_point_grid (shared with the normal estimator).
+from rangesurf.normals import _point_grid, _point_ranges, estimate_normals
 from rangesurf.segment._segmentation import Segmentation
 from rangesurf.segment.nxd import segment_nxd
-from rangesurf.segment.region_grow import grow_regions, refine_upsampled
+from rangesurf.segment.region_grow import _grow, _refine_upsampled
 
 __all__ = ["SEGMENTERS", "SegmentedFrame", "segment_frame", "segment_planes"]
 
@@ -66,16 +67,22 @@ def segment_planes(
     >>> planes.labels.shape, planes.n_segments >= 6
     ((480, 640), True)
     """
-    points = check_point_grid(points)
+    points = _point_grid(points)
     height, width = points.shape[:2]
     if decimate is None:
         decimate = max(1, round(math.sqrt(height * width / _GROWING_PIXELS)))
     if isinstance(decimate, bool) or not isinstance(decimate, (int, np.integer)) or decimate < 1:
         raise ValueError(f"decimate must be an integer >= 1, got {decimate!r}")
-    sigma = np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width))
+    distance, valid, n_infinite = _point_ranges(points)
+    if n_infinite:
+        check_point_grid(points)  # raises, in the shared wording
+    sigma = check_range_sigma(
+        np.where(valid, distance, np.nan), np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width))
+    )
+    # The stages' own defaults, on inputs checked once here.
     if decimate == 1:
         normals = estimate_normals(points, projection=projection, range_sigma=sigma)
-        return grow_regions(points, normals, range_sigma=sigma)
+        return _grow(points, normals, distance, valid, sigma)
     coarse_points = np.ascontiguousarray(points[::decimate, ::decimate])
     coarse_sigma = np.ascontiguousarray(sigma[::decimate, ::decimate])
     coarse_projection = None
@@ -85,8 +92,10 @@ def segment_planes(
             fx=projection.fx / decimate, fy=projection.fy / decimate, cx=projection.cx / decimate, cy=projection.cy / decimate
         )
     normals = estimate_normals(coarse_points, projection=coarse_projection, range_sigma=coarse_sigma)
-    coarse = grow_regions(coarse_points, normals, range_sigma=coarse_sigma)
-    return refine_upsampled(points, coarse, decimate, range_sigma=sigma)
+    coarse_distance = np.ascontiguousarray(distance[::decimate, ::decimate])
+    coarse_valid = np.ascontiguousarray(valid[::decimate, ::decimate])
+    coarse = _grow(coarse_points, normals, coarse_distance, coarse_valid, coarse_sigma)
+    return _refine_upsampled(points, distance, valid, sigma, coarse, decimate)
 
 
 @dataclass(frozen=True)

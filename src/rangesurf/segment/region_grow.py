@@ -71,6 +71,10 @@ _ABSORB_SWEEPS = 4
 # A segment thinner than this (pixels) whose plane lies between two neighbours' is a rounded crease.
 _BEVEL_WIDTH = 6.0
 _BEVEL_SLACK = 5.0
+# Defaults of the join test (grow_regions documents them).
+_DISTANCE_SIGMAS = 3.0
+_MAX_ANGLE = 20.0
+_DEPTH_JUMP = 0.05
 # Neighbour offsets (row, column) for growing and for region adjacency.
 _FOUR = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
 
@@ -80,9 +84,9 @@ def grow_regions(
     normals: ArrayLike,
     *,
     range_sigma: ArrayLike | float,
-    distance_sigmas: float = 3.0,
-    max_angle: float = 20.0,
-    depth_jump: float = 0.05,
+    distance_sigmas: float = _DISTANCE_SIGMAS,
+    max_angle: float = _MAX_ANGLE,
+    depth_jump: float = _DEPTH_JUMP,
     min_size: int | None = None,
     merge: bool = True,
 ) -> Segmentation:
@@ -156,13 +160,33 @@ def grow_regions(
     if not (isinstance(max_angle, (int, float)) and 0 < max_angle < 90):
         raise ValueError(f"max_angle must be in (0, 90) degrees, got {max_angle!r}")
     if min_size is None:
-        min_size = max(_MIN_SIZE_FLOOR, round(_MIN_SIZE_FRACTION * points.shape[0] * points.shape[1]))
+        min_size = default_min_size(*points.shape[:2])
     if isinstance(min_size, bool) or not isinstance(min_size, (int, np.integer)) or min_size < 1:
         raise ValueError(f"min_size must be an integer >= 1, got {min_size!r}")
 
     distance, valid = ranges(points)
     sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
-    sigma = np.where(valid, sigma, np.nan)
+    return _grow(points, normals, distance, valid, sigma, float(distance_sigmas), float(max_angle), float(depth_jump), int(min_size), merge)
+
+
+def _grow(
+    points: np.ndarray,
+    normals: np.ndarray,
+    distance: np.ndarray,
+    valid: np.ndarray,
+    sigma: np.ndarray,
+    distance_sigmas: float = _DISTANCE_SIGMAS,
+    max_angle: float = _MAX_ANGLE,
+    depth_jump: float = _DEPTH_JUMP,
+    min_size: int | None = None,
+    merge: bool = True,
+) -> Segmentation:
+    """`grow_regions` on checked inputs: float32 grids, ``distance`` and ``valid`` from `ranges`, ``sigma`` (H, W).
+
+    ``sigma`` is read only where ``valid``.
+    """
+    if min_size is None:
+        min_size = default_min_size(*valid.shape)
     growable = _with_normal(valid, normals)
     order = _seed_order(normals, growable, math.cos(math.radians(max_angle / 2)))
     labels, moments = _grow_kernel(
@@ -172,18 +196,18 @@ def grow_regions(
         sigma,
         growable,
         order,
-        float(distance_sigmas),
+        distance_sigmas,
         math.cos(math.radians(max_angle)),
-        float(depth_jump),
-        int(min_size),
+        depth_jump,
+        min_size,
         float(_FIRST_FIT),
     )
     planes, _ = planes_from_moments(moments)
-    _refine_boundaries(points, distance, sigma, labels, planes, moments, float(depth_jump))
+    _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_jump)
     planes, _ = planes_from_moments(moments)
     # Planes are fitted to what growing found (the core), not to the outline pixels absorbed below.
     core, core_moments = labels.copy(), moments.copy()
-    _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
+    unlabelled = _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, distance_sigmas, depth_jump, _ABSORB_SWEEPS)
     if merge:
         roots, moments = _merge_coplanar(labels, moments, math.cos(math.radians(max_angle)))
         labels, core = roots[labels], roots[core]
@@ -199,8 +223,7 @@ def grow_regions(
         moments[bevels] = 0
         core_moments[bevels] = 0
         planes, _ = planes_from_moments(moments)
-        _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS)
-    unlabelled = int(np.count_nonzero(valid & (labels == 0)))
+        unlabelled = _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, distance_sigmas, depth_jump, _ABSORB_SWEEPS)
     return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, core, core_moments))
 
 
@@ -210,8 +233,8 @@ def refine_upsampled(
     factor: int,
     *,
     range_sigma: ArrayLike | float,
-    distance_sigmas: float = 3.0,
-    depth_jump: float = 0.05,
+    distance_sigmas: float = _DISTANCE_SIGMAS,
+    depth_jump: float = _DEPTH_JUMP,
 ) -> Segmentation:
     """Carry a segmentation of the grid decimated by ``factor`` (``points[::factor, ::factor]``) to full resolution.
 
@@ -247,24 +270,37 @@ def refine_upsampled(
         raise ValueError(f"coarse labels {coarse.labels.shape} do not match ({height}, {width}) decimated by {factor}: {expected}")
     distance, valid = ranges(points)
     sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
-    sigma = np.where(valid, sigma, np.nan)
-    labels = np.repeat(np.repeat(coarse.labels, factor, axis=0), factor, axis=1)[:height, :width].astype(np.int32)
-    labels[~valid] = 0
-    planes = np.array(coarse.planes, dtype=np.float64)
-    with np.errstate(invalid="ignore"):
-        labels[_plane_offsets(points, labels, planes) > distance_sigmas * sigma] = 0
-    moments = _label_moments(points, labels, len(planes))
-    _refine_boundaries(points, distance, sigma, labels, planes, moments, float(depth_jump))
+    return _refine_upsampled(points, distance, valid, sigma, coarse, int(factor), float(distance_sigmas), float(depth_jump))
+
+
+def _refine_upsampled(
+    points: np.ndarray,
+    distance: np.ndarray,
+    valid: np.ndarray,
+    sigma: np.ndarray,
+    coarse: Segmentation,
+    factor: int,
+    distance_sigmas: float = _DISTANCE_SIGMAS,
+    depth_jump: float = _DEPTH_JUMP,
+) -> Segmentation:
+    """`refine_upsampled` on checked inputs (as for `_grow`)."""
+    planes = np.ascontiguousarray(coarse.planes, dtype=np.float64)
+    labels, moments = _upsampled_labels(points, valid, sigma, coarse.labels, factor, planes, distance_sigmas)
+    _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_jump)
     core, core_moments = labels.copy(), moments.copy()
     planes, _ = planes_from_moments(moments)
-    _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, float(distance_sigmas), float(depth_jump), _ABSORB_SWEEPS + factor)
-    unlabelled = int(np.count_nonzero(valid & (labels == 0)))
+    unlabelled = _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, distance_sigmas, depth_jump, _ABSORB_SWEEPS + factor)
     return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, core, core_moments))
 
 
 # --------------------------------------------------------------------------
 # Input checks.
 # --------------------------------------------------------------------------
+
+
+def default_min_size(height: int, width: int) -> int:
+    """Smallest segment kept by default: 0.2 % of the image, and never fewer than 20 pixels."""
+    return max(_MIN_SIZE_FLOOR, round(_MIN_SIZE_FRACTION * height * width))
 
 
 def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray]:
@@ -304,36 +340,15 @@ def _merge_coplanar(labels: np.ndarray, moments: np.ndarray, cos_max_angle: floa
     does not.
     """
     pairs = _neighbour_pairs(labels)
-    parent = np.arange(len(moments))
     if len(pairs) == 0:
-        return parent.astype(np.int32), moments
-
-    def root(index: int) -> int:
-        while parent[index] != index:
-            parent[index] = parent[parent[index]]
-            index = parent[index]
-        return index
-
-    merged = moments.copy()
+        return np.arange(len(moments), dtype=np.int32), moments
     planes, rms = planes_from_moments(moments)
     variance = np.nan_to_num(rms) ** 2
     cosine = np.abs(np.einsum("kj,kj->k", planes[pairs[:, 0], :3], planes[pairs[:, 1], :3]))
-    for negative_cosine, a, b in sorted(zip(-cosine, pairs[:, 0].tolist(), pairs[:, 1].tolist())):
-        if -negative_cosine < cos_max_angle:
-            break
-        ra, rb = root(a), root(b)
-        if ra == rb:
-            continue
-        union = merged[ra] + merged[rb]
-        union_variance = float(planes_from_moments(union)[1][0]) ** 2
-        pooled = (variance[ra] * merged[ra, 0] + variance[rb] * merged[rb, 0]) / union[0]
-        if union_variance <= _MERGE_VARIANCE_GAIN * pooled:
-            parent[rb] = ra
-            merged[ra] = union
-            merged[rb] = 0
-            variance[ra] = union_variance
-    roots = np.array([root(index) for index in range(len(moments))], dtype=np.int32)
-    return roots, merged
+    # Best pairs first (ties by label), as far as they are within the angle.
+    order = np.lexsort((pairs[:, 1], pairs[:, 0], -cosine))
+    order = order[np.nan_to_num(cosine[order]) >= cos_max_angle]
+    return _merge_kernel(np.ascontiguousarray(pairs[order]), moments, variance, _MERGE_VARIANCE_GAIN)
 
 
 def _bevels(labels: np.ndarray, moments: np.ndarray) -> np.ndarray:
@@ -414,6 +429,47 @@ def _neighbour_pairs(labels: np.ndarray) -> np.ndarray:
 
 
 @numba.njit(**_JIT)
+def _merge_kernel(pairs, moments, variance, gain):  # pragma: no cover - compiled
+    """Union-find over ``pairs`` in their order: merge when one plane fits both within ``gain`` of their pooled variance.
+
+    Returns the root label of every label and the merged moments.
+    """
+    count = moments.shape[0]
+    parent = np.arange(count)
+    merged = moments.copy()
+    variance = variance.copy()
+    normal = np.empty(3)
+    for k in range(pairs.shape[0]):
+        ra = pairs[k, 0]
+        while parent[ra] != ra:
+            parent[ra] = parent[parent[ra]]
+            ra = parent[ra]
+        rb = pairs[k, 1]
+        while parent[rb] != rb:
+            parent[rb] = parent[parent[rb]]
+            rb = parent[rb]
+        if ra == rb:
+            continue
+        union = merged[ra] + merged[rb]
+        union_variance, _ = plane_eigen(union, normal)
+        if union_variance < 0.0:
+            continue  # no plane through the union
+        pooled = (variance[ra] * merged[ra, 0] + variance[rb] * merged[rb, 0]) / union[0]
+        if union_variance <= gain * pooled:
+            parent[rb] = ra
+            merged[ra] = union
+            merged[rb] = 0.0
+            variance[ra] = union_variance
+    roots = np.empty(count, np.int32)
+    for index in range(count):
+        root = index
+        while parent[root] != root:
+            root = parent[root]
+        roots[index] = root
+    return roots, merged
+
+
+@numba.njit(**_JIT)
 def _neighbour_codes(labels, count):  # pragma: no cover - compiled
     """``a * count + b`` for every pixel pair (a < b, both labelled) one or two apart along a row or column."""
     height, width = labels.shape
@@ -470,8 +526,10 @@ def _seeds_by_coherence(total, count, growable, min_coherence):  # pragma: no co
     """Flat indices of pixels with coherence >= ``min_coherence``, most coherent first (counting sort, 65536 bins)."""
     height, width = growable.shape
     bins = 65536
+    # Only the buckets of coherences >= min_coherence are ever filled: the histogram stops there.
+    used = min(int((1.0 - min(max(min_coherence, 0.0), 1.0)) * (bins - 1)), bins - 1) + 1
     key = np.full(height * width, -1, np.int64)
-    histogram = np.zeros(bins + 1, np.int64)
+    histogram = np.zeros(used + 1, np.int64)
     for i in range(height):
         for j in range(width):
             if not growable[i, j] or count[i, j] <= 0:
@@ -479,12 +537,12 @@ def _seeds_by_coherence(total, count, growable, min_coherence):  # pragma: no co
             coherence = math.sqrt(total[i, j, 0] ** 2 + total[i, j, 1] ** 2 + total[i, j, 2] ** 2) / count[i, j]
             if coherence < min_coherence:
                 continue
-            bucket = min(int((1.0 - min(coherence, 1.0)) * (bins - 1)), bins - 1)
+            bucket = min(int((1.0 - min(coherence, 1.0)) * (bins - 1)), used - 1)
             key[i * width + j] = bucket
             histogram[bucket + 1] += 1
-    for b in range(bins):
+    for b in range(used):
         histogram[b + 1] += histogram[b]
-    order = np.empty(histogram[bins], np.int64)
+    order = np.empty(histogram[used], np.int64)
     for index in range(height * width):
         bucket = key[index]
         if bucket >= 0:
@@ -550,7 +608,8 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
         n0, n1, n2, n3 = plane[0], plane[1], plane[2], plane[3]
         seed_noise = sigma[si, sj]
         labels[si, sj] = region
-        _add_moments(moments, region, points[si, sj, 0], points[si, sj, 1], points[si, sj, 2])
+        # The region's moments live in registers while it grows; memory sees them at each refit.
+        grown = _run_add(_EMPTY_RUN, np.float64(points[si, sj, 0]), np.float64(points[si, sj, 1]), np.float64(points[si, sj, 2]))
         queue_i[0] = si
         queue_j[0] = sj
         head, tail = 0, 1
@@ -579,14 +638,18 @@ def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sig
                 if not (n0 * normals[qi, qj, 0] + n1 * normals[qi, qj, 1] + n2 * normals[qi, qj, 2] >= cos_angle):
                     continue
                 labels[qi, qj] = region
-                _add_moments(moments, region, x, y, z)
+                grown = _run_add(grown, np.float64(x), np.float64(y), np.float64(z))
                 queue_i[tail] = qi
                 queue_j[tail] = qj
                 tail += 1
                 if tail >= next_fit:
+                    for k in range(10):
+                        moments[region, k] = grown[k]
                     _fit(moments, region, plane, seed_noise, normal)
                     n0, n1, n2, n3 = plane[0], plane[1], plane[2], plane[3]
                     next_fit = tail * _REFIT_GROWTH
+        for k in range(10):
+            moments[region, k] = grown[k]
         if tail < min_size:
             # Only the seed is spent: a failed start (a noisy seed normal) must not
             # take its neighbours' chance to seed a region of their own.
@@ -615,6 +678,12 @@ def _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_j
             own = original[i, j]
             if own <= 0:
                 continue
+            # Most pixels are inside their segment, all eight neighbours alike: nothing to move.
+            if 0 < i < height - 1 and 0 < j < width - 1:
+                if ((original[i - 1, j - 1] == own) & (original[i - 1, j] == own) & (original[i - 1, j + 1] == own)
+                        & (original[i, j - 1] == own) & (original[i, j + 1] == own)
+                        & (original[i + 1, j - 1] == own) & (original[i + 1, j] == own) & (original[i + 1, j + 1] == own)):
+                    continue
             x = points[i, j, 0]
             y = points[i, j, 1]
             z = points[i, j, 2]
@@ -643,18 +712,60 @@ def _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_j
                 _add_moments(moments, best, x, y, z, 1.0)
 
 
+@numba.njit(**_JIT, inline="always")
+def _run_add(run, x, y, z):  # pragma: no cover - compiled
+    """`add_point` on a run of moments held as a tuple (in registers, not memory)."""
+    return (run[0] + 1.0, run[1] + x, run[2] + y, run[3] + z, run[4] + x * x, run[5] + x * y,
+            run[6] + x * z, run[7] + y * y, run[8] + y * z, run[9] + z * z)
+
+
+@numba.njit(**_JIT, inline="always")
+def _run_flush(moments, label, run):  # pragma: no cover - compiled
+    """Add a run's moments to ``label``'s row (nothing for label <= 0)."""
+    if label > 0:
+        for k in range(10):
+            moments[label, k] += run[k]
+
+
+_EMPTY_RUN = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
+
+
 @numba.njit(**_JIT)
-def _plane_offsets(points, labels, planes):  # pragma: no cover - compiled
-    """Distance (H, W) of every labelled pixel to its segment's plane; NaN where unlabelled."""
-    height, width = labels.shape
-    offsets = np.full((height, width), np.nan, np.float32)
+def _upsampled_labels(points, valid, sigma, coarse_labels, factor, planes, distance_sigmas):  # pragma: no cover - compiled
+    """Every valid pixel takes its block's coarse label, unless it is off that plane by more than ``distance_sigmas`` sigmas.
+
+    Returns the labels (H, W) int32 and their point moments (one row per
+    plane; row 0 empty). Moments are summed along runs of one label before
+    they go to memory: consecutive updates of one row would wait on each
+    other.
+    """
+    height, width = valid.shape
+    labels = np.zeros((height, width), np.int32)
+    moments = np.zeros((planes.shape[0], 10))
+    # Coarse column of every column (a division per pixel would cost more than the rest).
+    coarse_column = np.arange(width) // factor
+    current = 0
+    run = _EMPTY_RUN
     for i in range(height):
+        coarse_row = coarse_labels[i // factor]
         for j in range(width):
-            label = labels[i, j]
-            if label > 0:
-                offsets[i, j] = abs(planes[label, 0] * points[i, j, 0] + planes[label, 1] * points[i, j, 1]
-                                    + planes[label, 2] * points[i, j, 2] + planes[label, 3])
-    return offsets
+            label = coarse_row[coarse_column[j]]
+            if label <= 0 or not valid[i, j]:
+                continue
+            x = np.float64(points[i, j, 0])
+            y = np.float64(points[i, j, 1])
+            z = np.float64(points[i, j, 2])
+            offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
+            if offset > distance_sigmas * sigma[i, j]:
+                continue
+            labels[i, j] = label
+            if label != current:
+                _run_flush(moments, current, run)
+                current = label
+                run = _EMPTY_RUN
+            run = _run_add(run, x, y, z)
+    _run_flush(moments, current, run)
+    return labels, moments
 
 
 @numba.njit(**_JIT)
@@ -662,11 +773,18 @@ def _interior_kernel(points, labels, low, high, n_labels):  # pragma: no cover -
     """Moments of each label's interior pixels (its label is the minimum and maximum of the window)."""
     height, width = labels.shape
     moments = np.zeros((n_labels, 10))
+    current = 0
+    run = _EMPTY_RUN
     for i in range(height):
         for j in range(width):
             label = labels[i, j]
             if label > 0 and low[i, j] == high[i, j]:
-                add_point(moments[label], points[i, j, 0], points[i, j, 1], points[i, j, 2], 1.0)
+                if label != current:
+                    _run_flush(moments, current, run)
+                    current = label
+                    run = _EMPTY_RUN
+                run = _run_add(run, np.float64(points[i, j, 0]), np.float64(points[i, j, 1]), np.float64(points[i, j, 2]))
+    _run_flush(moments, current, run)
     return moments
 
 
@@ -675,15 +793,24 @@ def _trimmed_kernel(points, labels, low, high, whole, planes, limits, n_labels):
     """Moments of the fitted pixels (interior, or all of a ``whole`` label) within ``limits`` of their plane."""
     height, width = labels.shape
     moments = np.zeros((n_labels, 10))
+    current = 0
+    run = _EMPTY_RUN
     for i in range(height):
         for j in range(width):
             label = labels[i, j]
             if label <= 0 or not (whole[label] or low[i, j] == high[i, j]):
                 continue
-            x, y, z = points[i, j, 0], points[i, j, 1], points[i, j, 2]
+            x = np.float64(points[i, j, 0])
+            y = np.float64(points[i, j, 1])
+            z = np.float64(points[i, j, 2])
             offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
             if offset <= limits[label]:
-                add_point(moments[label], x, y, z, 1.0)
+                if label != current:
+                    _run_flush(moments, current, run)
+                    current = label
+                    run = _EMPTY_RUN
+                run = _run_add(run, x, y, z)
+    _run_flush(moments, current, run)
     return moments
 
 
@@ -710,11 +837,18 @@ def _label_moments(points, labels, n_labels):  # pragma: no cover - compiled
     """Point moments (n_labels, 10) of every label (row 0: unlabelled, left empty)."""
     height, width = labels.shape
     moments = np.zeros((n_labels, 10))
+    current = 0
+    run = _EMPTY_RUN
     for i in range(height):
         for j in range(width):
             label = labels[i, j]
             if label > 0:
-                _add_moments(moments, label, points[i, j, 0], points[i, j, 1], points[i, j, 2])
+                if label != current:
+                    _run_flush(moments, current, run)
+                    current = label
+                    run = _EMPTY_RUN
+                run = _run_add(run, np.float64(points[i, j, 0]), np.float64(points[i, j, 1]), np.float64(points[i, j, 2]))
+    _run_flush(moments, current, run)
     return moments
 
 
@@ -727,38 +861,61 @@ def _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, dist
     joins the adjacent segment whose plane it is nearest to, if within
     ``distance_sigmas`` noise sigmas and not across a depth jump. Each sweep
     decides on the labels of the previous one, so the order of the scan does
-    not matter; ``sweeps`` rings are added at most.
+    not matter; ``sweeps`` rings are added at most. Returns the number of
+    valid pixels left free.
     """
     height, width = labels.shape
+    # The free valid pixels, in scan order; each sweep decides on the labels of the previous one, so its
+    # choices are applied after it.
+    free_i = np.empty(height * width, np.int32)
+    free_j = np.empty(height * width, np.int32)
+    n_free = 0
+    for i in range(height):
+        for j in range(width):
+            if labels[i, j] == 0 and valid[i, j]:
+                free_i[n_free] = i
+                free_j[n_free] = j
+                n_free += 1
+    chosen = np.empty(n_free, np.int32)
     for _ in range(sweeps):
-        before = labels.copy()
         changed = 0
-        for i in range(height):
-            for j in range(width):
-                if before[i, j] != 0 or not valid[i, j]:
+        for k in range(n_free):
+            i = free_i[k]
+            j = free_j[k]
+            x = points[i, j, 0]
+            y = points[i, j, 1]
+            z = points[i, j, 2]
+            best = 0
+            best_gap = distance_sigmas * sigma[i, j]
+            for direction in range(4):
+                qi = i + _FOUR[direction, 0]
+                qj = j + _FOUR[direction, 1]
+                if qi < 0 or qj < 0 or qi >= height or qj >= width:
                     continue
-                x = points[i, j, 0]
-                y = points[i, j, 1]
-                z = points[i, j, 2]
-                best = 0
-                best_gap = distance_sigmas * sigma[i, j]
-                for direction in range(4):
-                    qi = i + _FOUR[direction, 0]
-                    qj = j + _FOUR[direction, 1]
-                    if qi < 0 or qj < 0 or qi >= height or qj >= width:
-                        continue
-                    other = before[qi, qj]
-                    if other <= 0:
-                        continue
-                    if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
-                        continue
-                    gap = abs(planes[other, 0] * x + planes[other, 1] * y + planes[other, 2] * z + planes[other, 3])
-                    if gap <= best_gap:
-                        best = other
-                        best_gap = gap
-                if best > 0:
-                    labels[i, j] = best
-                    _add_moments(moments, best, x, y, z, 1.0)
-                    changed += 1
+                other = labels[qi, qj]
+                if other <= 0:
+                    continue
+                if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
+                    continue
+                gap = abs(planes[other, 0] * x + planes[other, 1] * y + planes[other, 2] * z + planes[other, 3])
+                if gap <= best_gap:
+                    best = other
+                    best_gap = gap
+            chosen[k] = best
+            changed += best > 0
         if changed == 0:
             break
+        remaining = 0
+        for k in range(n_free):
+            i = free_i[k]
+            j = free_j[k]
+            best = chosen[k]
+            if best > 0:
+                labels[i, j] = best
+                _add_moments(moments, best, points[i, j, 0], points[i, j, 1], points[i, j, 2], 1.0)
+            else:
+                free_i[remaining] = i
+                free_j[remaining] = j
+                remaining += 1
+        n_free = remaining
+    return n_free
