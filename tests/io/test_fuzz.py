@@ -140,3 +140,47 @@ def test_regression_npz_with_an_unknown_zip_version(tmp_path):
     path.write_bytes(bytes(data))
     with pytest.raises(FormatError, match="version.npz"):
         rs.load(path)
+
+
+def _with_header(header: str) -> bytes:
+    """A .npy file whose header dictionary is ``header`` (padded as numpy pads it), with no data."""
+    text = header.ljust(118) + "\n"
+    return b"\x93NUMPY\x01\x00" + len(text).to_bytes(2, "little") + text.encode("latin-1")
+
+
+def test_regression_npy_with_a_shape_past_any_integer(tmp_path):
+    """Found by fuzz/run_all.py: numpy overflowed a C long on the declared shape."""
+    path = tmp_path / "huge.npy"
+    path.write_bytes(_with_header("{'descr': '<f4', 'fortran_order': False, 'shape': (" + "9" * 40 + ", 10), }"))
+    with pytest.raises(FormatError, match="huge.npy"):
+        rs.load(path)
+
+
+def test_regression_npz_with_an_encrypted_member(tmp_path):
+    """Found by fuzz/run_all.py: zipfile raises RuntimeError for a member flagged as encrypted."""
+    path = tmp_path / "locked.npz"
+    rs.save(path, rs.simulate.simulate_sequence("arena", "sr3000", 1, seed=0)[0][0])
+    data = bytearray(path.read_bytes())
+    for marker in (b"PK\x03\x04", b"PK\x01\x02"):
+        start = 0
+        while (position := data.find(marker, start)) >= 0:
+            flags_at = position + (6 if marker == b"PK\x03\x04" else 8)
+            data[flags_at] |= 0x01  # general purpose bit 0: encrypted
+            start = position + 4
+    path.write_bytes(bytes(data))
+    with pytest.raises(FormatError, match="locked.npz"):
+        rs.load(path)
+
+
+def test_regression_png_declaring_a_huge_image(tmp_path):
+    """Found by fuzz/run_all.py: the decoder allocated what a hostile IHDR declared."""
+    path = tmp_path / "huge.png"
+    import zlib
+
+    def chunk(kind: bytes, body: bytes) -> bytes:
+        return len(body).to_bytes(4, "big") + kind + body + zlib.crc32(kind + body).to_bytes(4, "big")
+
+    header = (60000).to_bytes(4, "big") + (60000).to_bytes(4, "big") + bytes([16, 0, 0, 0, 0])
+    path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
+    with pytest.raises(FormatError, match="huge.png.*IHDR"):
+        rs.load(path)

@@ -176,9 +176,10 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
         with archive:
             return {name: archive[name] for name in archive.files}
     # numpy parses the .npy header with Python's tokenizer: a corrupted header raises SyntaxError or
-    # tokenize.TokenError, not ValueError; zipfile raises NotImplementedError for unknown zip versions.
-    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, NotImplementedError, zipfile.BadZipFile,
-            zlib.error) as error:
+    # tokenize.TokenError, not ValueError; zipfile raises NotImplementedError for unknown zip versions and
+    # RuntimeError for encrypted members; a huge declared shape overflows (OverflowError, MemoryError).
+    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, NotImplementedError, RuntimeError,
+            OverflowError, MemoryError, zipfile.BadZipFile, zlib.error) as error:
         if isinstance(error, FormatError):
             raise
         # allow_pickle=False turns object arrays into ValueError too.
@@ -263,7 +264,7 @@ def read_npy(path: str | os.PathLike, *, sensor: str | SensorModel | None = None
         raise FormatError(path, "empty file; expected a NumPy .npy array")
     try:
         array = np.load(path, allow_pickle=False)
-    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError) as error:
+    except (ValueError, OSError, EOFError, SyntaxError, tokenize.TokenError, OverflowError, MemoryError) as error:
         raise FormatError(path, f"not a readable NumPy .npy array ({error})") from None
     if not isinstance(array, np.ndarray):
         raise FormatError(path, "holds an .npz archive; name it .npz to read it as a rangesurf frame")
