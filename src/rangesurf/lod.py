@@ -84,7 +84,8 @@ def _plane_frame(surface: Surface) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         normal, offset = plane[:3] / np.linalg.norm(plane[:3]), plane[3] / np.linalg.norm(plane[:3])
     else:
         centre = vertices.mean(axis=0)
-        _, _, axes = np.linalg.svd(vertices - centre, full_matrices=False)
+        # Full matrices: three axes even for fewer than three vertices (any plane through them will do).
+        _, _, axes = np.linalg.svd(vertices - centre, full_matrices=True)
         normal = axes[2]
         offset = -float(normal @ centre)
     helper = np.eye(3)[np.argmin(np.abs(normal))]
