@@ -184,3 +184,11 @@ def test_regression_png_declaring_a_huge_image(tmp_path):
     path.write_bytes(b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", header) + chunk(b"IDAT", zlib.compress(b"\0" * 64)) + chunk(b"IEND", b""))
     with pytest.raises(FormatError, match="huge.png.*IHDR"):
         rs.load(path)
+
+
+def test_regression_npy_with_a_bytes_dtype(tmp_path):
+    """Found by fuzz/run_all.py: a bytes literal as the dtype made numpy's header check raise TypeError."""
+    path = tmp_path / "bytes.npy"
+    path.write_bytes(_with_header("{'descr': b'<f4', 'fortran_order': False, 'shape': (2, 2), }") + bytes(16))
+    with pytest.raises(FormatError, match="bytes.npy"):
+        rs.load(path)
