@@ -154,6 +154,25 @@ def _command_run(args: argparse.Namespace) -> int:
     return 0 if summary.stopped is None or summary.stopped.startswith("interrupted") else 1
 
 
+def _command_batch(args: argparse.Namespace) -> int:
+    from rangesurf.batch import run_batch
+    from rangesurf.config import PipelineConfig
+
+    config = PipelineConfig.load(args.config) if args.config else None
+    seed = args.seed[0] if len(args.seed) == 1 else args.seed
+    batch = run_batch(args.inputs, args.out, scheduler=args.scheduler, workers=args.workers, config=config,
+                      frames=args.frames, sensor=args.sensor, seed=seed, overwrite=args.overwrite, progress=not args.quiet)
+    print(f"rangesurf batch: {len(batch.items)} inputs on {batch.workers} Dask worker(s) at {batch.scheduler} in "
+          f"{batch.seconds:.1f} s, {len(batch.failed)} failed; summary in {batch.out / 'batch.json'}")
+    for item in batch.items:
+        if item.ok:
+            stopped = f"; stopped: {item.summary.stopped}" if item.summary.stopped else ""
+            print(f"  {item.input} -> {item.out}: {item.summary.frames} frames in {item.seconds:.1f} s{stopped}")
+        else:
+            print(f"  {item.input} -> {item.out}: FAILED: {item.error}")
+    return 1 if batch.failed else 0
+
+
 def _command_view(args: argparse.Namespace) -> int:
     from rangesurf.viewer import view_model
 
@@ -382,6 +401,23 @@ def build_parser() -> argparse.ArgumentParser:
     lod.add_argument("--out", type=Path, required=True, help="output folder (one figure per frame)")
     lod.add_argument("--panels", type=int, default=4, help="levels shown (default 4)")
     lod.set_defaults(handler=_command_lod)
+
+    batch = commands.add_parser("batch", help="many recordings through the main job on a Dask cluster "
+                                "(pip install 'rangesurf[distributed]')")
+    batch.add_argument("inputs", nargs="+", metavar="INPUT",
+                       help="files, folders, globs or ROS bags, or simulated sequences: sim:arena, sim:corridor")
+    batch.add_argument("--out", type=Path, required=True, help="parent output folder: one folder per input, and batch.json")
+    batch.add_argument("--scheduler", metavar="ADDRESS",
+                       help="a running Dask scheduler, e.g. tcp://host:8786 (default: a local cluster for the batch)")
+    batch.add_argument("--workers", type=int, help="worker processes of the local cluster (default: one per CPU core)")
+    batch.add_argument("--config", type=Path, help="settings (TOML, as the config.toml a run writes)")
+    batch.add_argument("--frames", type=int, help="at most this many frames per input (simulated: default 200)")
+    batch.add_argument("--sensor", choices=sorted(SENSORS), help="sensor preset (simulated input, or overriding a reader)")
+    batch.add_argument("--seed", type=int, nargs="+", default=[0],
+                       help="simulation seed: one for all inputs or one per input (default 0)")
+    batch.add_argument("--overwrite", action="store_true", help="replace the outputs of earlier runs in the input folders")
+    batch.add_argument("--quiet", action="store_true", help="no progress bar")
+    batch.set_defaults(handler=_command_batch)
 
     bench = commands.add_parser("bench", help="run the side-by-side benchmarks against peer libraries; gather benchmarks/results.md")
     bench.add_argument("names", nargs="*", help="benchmarks to run (default all): " + ", ".join(_bench_names()))

@@ -173,6 +173,8 @@ def run(
     from rangesurf.viewer import NullViewer
 
     viewer = viewer if viewer is not None else NullViewer()
+    # The input first: a path that does not exist should not leave an output folder behind.
+    items, total, known = open_input(spec, frames=frames, sensor=sensor, seed=seed)
     out = Path(out)
     checkpoint = out / _CHECKPOINT
     # A run killed while writing leaves its temporary files (never a half-written output): clear them.
@@ -194,7 +196,6 @@ def run(
         pipeline = Pipeline(config)
     config = pipeline.config
     config.save(out / "config.toml")
-    items, total, known = open_input(spec, frames=frames, sensor=sensor, seed=seed)
     summary = RunSummary(out=out)
     rows: list[dict] = _rows_from_array(pipeline.checkpoint_extra.get("timings")) if resume else []
     truths: list[np.ndarray | None] = []
