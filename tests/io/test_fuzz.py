@@ -192,3 +192,15 @@ def test_regression_npy_with_a_bytes_dtype(tmp_path):
     path.write_bytes(_with_header("{'descr': b'<f4', 'fortran_order': False, 'shape': (2, 2), }") + bytes(16))
     with pytest.raises(FormatError, match="bytes.npy"):
         rs.load(path)
+
+
+def test_regression_npz_with_a_member_that_is_not_an_array(tmp_path):
+    """Found by fuzz/run_all.py: np.load returns raw bytes for a zip member that is not an .npy file."""
+    import zipfile
+
+    path = tmp_path / "member.npz"
+    rs.save(path, rs.simulate.simulate_sequence("arena", "sr3000", 1, seed=0)[0][0])
+    with zipfile.ZipFile(path, "a") as archive:
+        archive.writestr("range", b"not an array")
+    with pytest.raises(FormatError, match="member.npz"):
+        rs.load(path)

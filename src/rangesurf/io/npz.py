@@ -171,7 +171,12 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
         if not isinstance(archive, np.lib.npyio.NpzFile):
             raise FormatError(path, "holds a single array (.npy data), not an .npz archive of named arrays")
         with archive:
-            return {name: archive[name] for name in archive.files}
+            arrays = {name: archive[name] for name in archive.files}
+        # A zip member that is not an .npy file comes back as raw bytes (found by fuzzing).
+        for name, value in arrays.items():
+            if not isinstance(value, np.ndarray):
+                raise FormatError(path, "is not a NumPy array inside the archive", where=f"member '{name}'")
+        return arrays
     # Fuzzing found np.load failing on hostile bytes with SyntaxError and tokenize.TokenError (the .npy
     # header is parsed as Python), TypeError, OverflowError and MemoryError (huge shapes), and zipfile
     # with NotImplementedError (unknown versions) and RuntimeError (encrypted members): any exception
