@@ -15,9 +15,11 @@ simulation, every true surface point) to each mesh, point to triangle, by
 Open3D's ``RaycastingScene``.
 
 Open3D's hashed volumes were the first choice, but in the Open3D 0.20 wheel
-installed here both the legacy ``ScalableTSDFVolume`` and the tensor
-``VoxelBlockGrid`` return empty meshes even for one flat wall at 2 m (blocks
-are allocated, nothing is extracted), while ``UniformTSDFVolume`` works.
+installed here the legacy ``ScalableTSDFVolume`` returns empty meshes even
+for one flat wall at 2 m, so the dense ``UniformTSDFVolume`` is the peer here.
+(The tensor ``VoxelBlockGrid`` works: its empty meshes in a first trial came
+from ``extract_triangle_mesh``'s default ``weight_threshold=3``, which drops
+voxels seen by fewer than three frames; ``benchmarks/pipeline.py`` uses it.)
 """
 
 from __future__ import annotations
