@@ -41,8 +41,8 @@ __all__ = ["read_depth_png", "write_depth_png", "pinhole_sensor", "z_depth_to_ra
 # Folder-wide intrinsics files, tried after <stem>.json.
 INTRINSICS_NAMES = ("intrinsics.json", "camera_intrinsics.json")
 DEFAULT_DEPTH_SCALE = 1000.0
-# Largest depth image read (pixels): 8192 x 8192, far beyond any range sensor.
-_MAX_PIXELS = 8192 * 8192
+# Largest depth image read (pixels): 4096 x 4096, far beyond any range sensor.
+_MAX_PIXELS = 4096 * 4096
 _UINT16_MAX = 65535
 # Depth cameras run near this rate; the value only informs timing estimates.
 _DEFAULT_FRAME_RATE = 30.0
@@ -159,13 +159,17 @@ def _read_png(path: Path) -> np.ndarray:
     encoded = np.fromfile(path, dtype=np.uint8)
     if encoded.size == 0:
         raise FormatError(path, "empty file; expected a 16-bit depth PNG")
-    # The declared size first (IHDR: width and height right after the signature): a hostile header
-    # would otherwise have the decoder allocate gigabytes.
-    if encoded.size >= 24 and bytes(encoded[12:16]) == b"IHDR":
+    # The header first (IHDR: width, height, bit depth, colour type right after the signature): a
+    # hostile one would otherwise have the decoder allocate gigabytes before the pixel format is seen.
+    if encoded.size >= 26 and bytes(encoded[12:16]) == b"IHDR":
         width, height = int.from_bytes(bytes(encoded[16:20]), "big"), int.from_bytes(bytes(encoded[20:24]), "big")
+        bit_depth, colour_type = int(encoded[24]), int(encoded[25])
         if width * height > _MAX_PIXELS:
             raise FormatError(path, f"declares a {width} x {height} image; depth images up to {_MAX_PIXELS} pixels are read",
                               where="IHDR")
+        if (bit_depth, colour_type) != (16, 0):
+            raise FormatError(path, f"expected a single-channel 16-bit depth image, the header declares bit depth "
+                                    f"{bit_depth} and colour type {colour_type}", where="IHDR")
     image = cv2.imdecode(encoded, cv2.IMREAD_UNCHANGED)
     if image is None:
         raise FormatError(path, "cannot decode the image; expected a 16-bit depth PNG")
