@@ -11,7 +11,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["add_point", "smallest_eigen", "plane_eigen", "planes_from_moments", "plane_rms"]
+__all__ = ["add_point", "smallest_eigen", "plane_eigen", "eigenvector", "planes_from_moments", "plane_rms"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -38,6 +38,30 @@ def smallest_eigen(sums, normal):  # pragma: no cover - compiled
     Returns -1 when the fit is undefined (fewer than 3 points, or no plane).
     """
     return plane_eigen(sums, normal)[0]
+
+
+@numba.njit(**_JIT, inline="always")
+def eigenvector(a00, a01, a02, a11, a12, a22, value):  # pragma: no cover - compiled
+    """Eigenvector (unnormalised) of the symmetric 3x3 matrix ``a`` for eigenvalue ``value``, and its squared length.
+
+    The largest cross product of two rows of ``a - value I`` (the
+    eigenvector is orthogonal to all of them); a squared length of 0 means
+    no direction is singled out.
+    """
+    r0x, r0y, r0z = a00 - value, a01, a02
+    r1x, r1y, r1z = a01, a11 - value, a12
+    r2x, r2y, r2z = a02, a12, a22 - value
+    c0x, c0y, c0z = r0y * r1z - r0z * r1y, r0z * r1x - r0x * r1z, r0x * r1y - r0y * r1x
+    c1x, c1y, c1z = r0y * r2z - r0z * r2y, r0z * r2x - r0x * r2z, r0x * r2y - r0y * r2x
+    c2x, c2y, c2z = r1y * r2z - r1z * r2y, r1z * r2x - r1x * r2z, r1x * r2y - r1y * r2x
+    d0 = c0x * c0x + c0y * c0y + c0z * c0z
+    d1 = c1x * c1x + c1y * c1y + c1z * c1z
+    d2 = c2x * c2x + c2y * c2y + c2z * c2z
+    if d0 >= d1 and d0 >= d2:
+        return c0x, c0y, c0z, d0
+    if d1 >= d2:
+        return c1x, c1y, c1z, d1
+    return c2x, c2y, c2z, d2
 
 
 @numba.njit(**_JIT)
@@ -76,22 +100,7 @@ def plane_eigen(sums, normal):  # pragma: no cover - compiled
     phi = math.acos(half) / 3.0
     smallest = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)
     middle = 3.0 * q - smallest - (q + 2.0 * p * math.cos(phi))
-    # Rows of C - smallest * I; the normal is orthogonal to all of them.
-    r0x, r0y, r0z = a00 - smallest, a01, a02
-    r1x, r1y, r1z = a01, a11 - smallest, a12
-    r2x, r2y, r2z = a02, a12, a22 - smallest
-    c0x, c0y, c0z = r0y * r1z - r0z * r1y, r0z * r1x - r0x * r1z, r0x * r1y - r0y * r1x
-    c1x, c1y, c1z = r0y * r2z - r0z * r2y, r0z * r2x - r0x * r2z, r0x * r2y - r0y * r2x
-    c2x, c2y, c2z = r1y * r2z - r1z * r2y, r1z * r2x - r1x * r2z, r1x * r2y - r1y * r2x
-    d0 = c0x * c0x + c0y * c0y + c0z * c0z
-    d1 = c1x * c1x + c1y * c1y + c1z * c1z
-    d2 = c2x * c2x + c2y * c2y + c2z * c2z
-    if d0 >= d1 and d0 >= d2:
-        vx, vy, vz, d = c0x, c0y, c0z, d0
-    elif d1 >= d2:
-        vx, vy, vz, d = c1x, c1y, c1z, d1
-    else:
-        vx, vy, vz, d = c2x, c2y, c2z, d2
+    vx, vy, vz, d = eigenvector(a00, a01, a02, a11, a12, a22, smallest)
     if d <= 0.0:
         return -1.0, -1.0
     norm = math.sqrt(d)

@@ -56,7 +56,7 @@ from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf._grid import pixel_pitch
-from rangesurf._planefit import add_point
+from rangesurf._planefit import add_point, eigenvector
 from rangesurf._planefit import smallest_eigen as _smallest_eigen
 from rangesurf.frame import PinholeProjection
 
@@ -995,21 +995,7 @@ def _plane_normal(sums, normal):  # pragma: no cover - compiled
             smallest -= step
             if -step <= 1e-12 * trace:
                 break
-    r0x, r0y, r0z = a00 - smallest, a01, a02
-    r1x, r1y, r1z = a01, a11 - smallest, a12
-    r2x, r2y, r2z = a02, a12, a22 - smallest
-    c0x, c0y, c0z = r0y * r1z - r0z * r1y, r0z * r1x - r0x * r1z, r0x * r1y - r0y * r1x
-    c1x, c1y, c1z = r0y * r2z - r0z * r2y, r0z * r2x - r0x * r2z, r0x * r2y - r0y * r2x
-    c2x, c2y, c2z = r1y * r2z - r1z * r2y, r1z * r2x - r1x * r2z, r1x * r2y - r1y * r2x
-    d0 = c0x * c0x + c0y * c0y + c0z * c0z
-    d1 = c1x * c1x + c1y * c1y + c1z * c1z
-    d2 = c2x * c2x + c2y * c2y + c2z * c2z
-    if d0 >= d1 and d0 >= d2:
-        vx, vy, vz, d = c0x, c0y, c0z, d0
-    elif d1 >= d2:
-        vx, vy, vz, d = c1x, c1y, c1z, d1
-    else:
-        vx, vy, vz, d = c2x, c2y, c2z, d2
+    vx, vy, vz, d = eigenvector(a00, a01, a02, a11, a12, a22, smallest)
     if not d > 0.0:
         return False
     scale = 1.0 / math.sqrt(d)
