@@ -406,7 +406,8 @@ def _interior_moments(points: np.ndarray, labels: np.ndarray, moments: np.ndarra
     kernel = np.ones((2 * _INTERIOR_MARGIN + 1,) * 2, np.uint8)
     low = cv2.erode(as_float, kernel, borderType=cv2.BORDER_REPLICATE)
     high = cv2.dilate(as_float, kernel, borderType=cv2.BORDER_REPLICATE)
-    fit = _interior_kernel(points, labels, low, high, len(moments))
+    # Interior pixels: the label is both the minimum and the maximum of the window.
+    fit = _masked_moments(points, labels, low == high, len(moments))
     # Segments with too small an interior are fitted whole.
     whole = fit[:, 0] < np.maximum(_MIN_INTERIOR, _MIN_INTERIOR_FRACTION * moments[:, 0])
     fit[whole] = moments[whole]
@@ -769,8 +770,8 @@ def _upsampled_labels(points, valid, sigma, coarse_labels, factor, planes, dista
 
 
 @numba.njit(**_JIT)
-def _interior_kernel(points, labels, low, high, n_labels):  # pragma: no cover - compiled
-    """Moments of each label's interior pixels (its label is the minimum and maximum of the window)."""
+def _masked_moments(points, labels, mask, n_labels):  # pragma: no cover - compiled
+    """Point moments (n_labels, 10) of each label's pixels where ``mask`` holds (row 0: unlabelled, left empty)."""
     height, width = labels.shape
     moments = np.zeros((n_labels, 10))
     current = 0
@@ -778,7 +779,7 @@ def _interior_kernel(points, labels, low, high, n_labels):  # pragma: no cover -
     for i in range(height):
         for j in range(width):
             label = labels[i, j]
-            if label > 0 and low[i, j] == high[i, j]:
+            if label > 0 and mask[i, j]:
                 if label != current:
                     _run_flush(moments, current, run)
                     current = label
@@ -832,24 +833,9 @@ def _pixel_moments(labels, n_labels):  # pragma: no cover - compiled
     return moments
 
 
-@numba.njit(**_JIT)
-def _label_moments(points, labels, n_labels):  # pragma: no cover - compiled
+def _label_moments(points: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:
     """Point moments (n_labels, 10) of every label (row 0: unlabelled, left empty)."""
-    height, width = labels.shape
-    moments = np.zeros((n_labels, 10))
-    current = 0
-    run = _EMPTY_RUN
-    for i in range(height):
-        for j in range(width):
-            label = labels[i, j]
-            if label > 0:
-                if label != current:
-                    _run_flush(moments, current, run)
-                    current = label
-                    run = _EMPTY_RUN
-                run = _run_add(run, np.float64(points[i, j, 0]), np.float64(points[i, j, 1]), np.float64(points[i, j, 2]))
-    _run_flush(moments, current, run)
-    return moments
+    return _masked_moments(points, labels, labels > 0, n_labels)
 
 
 @numba.njit(**_JIT)
