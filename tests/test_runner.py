@@ -1,6 +1,7 @@
 """The main job end to end: outputs checked against the simulator's ground truth, resume, bad input."""
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -147,3 +148,21 @@ def test_bad_config_files_name_the_key(tmp_path):
     path.write_text("[run\n")
     with pytest.raises(ConfigError, match="not valid TOML"):
         PipelineConfig.load(path)
+
+
+def test_resume_reads_nothing_it_merged_before(tmp_path, monkeypatch):
+    """A resumed run neither re-reads nor re-simulates the frames its checkpoint holds, and counts an
+    unreadable frame skipped before the checkpoint as consumed (not as a frame still to merge)."""
+    files = _frames_with_a_broken_one(tmp_path / "frames")
+    config = PipelineConfig.from_dict({"run": {"checkpoint_every": 1}})
+    first = run(str(tmp_path / "frames"), tmp_path / "out", config=config, frames=2, progress=False)
+    assert first.frames == 2 and len(first.skipped) == 1  # frames 0, 1 merged, frame 2 unreadable
+    import rangesurf.runner as runner
+
+    read = []
+    original = runner.iter_frames
+    monkeypatch.setattr(runner, "iter_frames", lambda path, **options: (read.append(Path(path).name), original(path, **options))[1])
+    resumed = run(str(tmp_path / "frames"), tmp_path / "out", resume=True, progress=False)
+    assert read == [files[3].name] and resumed.frames == 1 and not resumed.skipped
+    _, poses = read_tum_trajectory(tmp_path / "out" / "trajectory.txt")
+    assert len(poses) == 3

@@ -47,15 +47,19 @@ __all__ = ["Item", "RunSummary", "run", "open_input", "OUTPUTS"]
 
 OUTPUTS = ("model.ply", "model.glb", "trajectory.txt", "timings.csv", "metrics.json", "report.html", "config.toml")
 _CHECKPOINT = "checkpoint.npz"
+_BAGS = (".bag", ".mcap", ".db3")
 
 
 @dataclass(frozen=True)
 class Item:
-    """One input position: a frame (with its ground truth when simulated), or why it could not be read."""
+    """One input position: a frame (with its true pose when simulated), or why it could not be read.
+
+    Positions a resumed run has already merged come without a frame.
+    """
 
     source: str
     frame: RangeFrame | None = None
-    truth: object | None = None
+    true_pose: np.ndarray | None = None
     error: str | None = None
 
 
@@ -74,11 +78,13 @@ class RunSummary:
 
 
 def open_input(spec: str, *, frames: int | None = None, sensor: str | None = None, seed: int = 0,
-               odometry_noise: bool = True) -> tuple[Iterator[Item], int | None, dict]:
+               odometry_noise: bool = True, skip: int = 0) -> tuple[Iterator[Item], int | None, dict]:
     """Items of an input: ``sim:SCENE`` (a simulated sequence with noisy odometry) or a path.
 
-    Returns the items, their number if known, and what is known about the
-    input (the scene's true planes for simulated ones).
+    The first ``skip`` positions (merged before a checkpoint) come without
+    frames and are neither simulated nor read, except in bags, whose frames
+    can only be reached in order. Returns the items, their number if known,
+    and what is known about the input (the scene's true planes for simulated ones).
     """
     if spec.startswith("sim:"):
         from rangesurf import simulate
@@ -93,9 +99,12 @@ def open_input(spec: str, *, frames: int | None = None, sensor: str | None = Non
         odometry = simulate.noisy_odometry(true_poses, seed=seed) if odometry_noise else true_poses
 
         def simulated() -> Iterator[Item]:
-            sequence = simulate.iter_sequence(scene, sensor_name, count, seed=seed, trajectory=true_poses)
-            for index, (frame, truth) in enumerate(sequence):
-                yield Item(frame.source, dataclasses.replace(frame, pose=odometry[index]), truth)
+            start = min(skip, count)
+            for index in range(start):
+                yield Item(f"simulated:{scene}/{sensor_name}/frame{index:04d}", true_pose=true_poses[index])
+            sequence = simulate.iter_sequence(scene, sensor_name, count, seed=seed, trajectory=true_poses, start=start)
+            for index, (frame, truth) in enumerate(sequence, start=start):
+                yield Item(frame.source, dataclasses.replace(frame, pose=odometry[index]), truth.T_world_sensor)
 
         planes = simulate.get_scene(scene).planes
         return simulated(), count, {"scene": scene, "sensor": sensor_name, "true_planes": planes[np.isfinite(planes).all(axis=1)]}
@@ -106,6 +115,11 @@ def open_input(spec: str, *, frames: int | None = None, sensor: str | None = Non
     def from_files() -> Iterator[Item]:
         taken = 0
         for file in files:
+            if taken < skip and file.suffix.lower() not in _BAGS and not file.is_dir():
+                # A one-frame file merged before the checkpoint: not read again.
+                taken += 1
+                yield Item(str(file))
+                continue
             try:
                 for frame in iter_frames(file, sensor=sensor):
                     if frames is not None and taken >= frames:
@@ -116,7 +130,7 @@ def open_input(spec: str, *, frames: int | None = None, sensor: str | None = Non
                 yield Item(str(file), error=str(error))
 
     # One frame per file except for bags, whose frame count is not known before reading.
-    per_file = all(file.suffix.lower() not in (".bag", ".mcap", ".db3") and not file.is_dir() for file in files)
+    per_file = all(file.suffix.lower() not in _BAGS and not file.is_dir() for file in files)
     total = len(files) if per_file else None
     if frames is not None:
         total = frames if total is None else min(frames, total)
@@ -173,14 +187,15 @@ def run(
     from rangesurf.viewer import NullViewer
 
     viewer = viewer if viewer is not None else NullViewer()
-    # The input first: a path that does not exist should not leave an output folder behind.
-    items, total, known = open_input(spec, frames=frames, sensor=sensor, seed=seed)
     out = Path(out)
     checkpoint = out / _CHECKPOINT
     # A run killed while writing leaves its temporary files (never a half-written output): clear them.
     for name in (*OUTPUTS, _CHECKPOINT):
         for leftover in out.glob(f".{name}.*"):
             leftover.unlink(missing_ok=True)
+    # The input first: a path that does not exist should not leave an output folder behind.
+    if not spec.startswith("sim:"):
+        data_files(Path(spec))
     if resume:
         if not checkpoint.is_file():
             raise FileNotFoundError(f"{checkpoint}: no checkpoint to resume from")
@@ -196,12 +211,15 @@ def run(
         pipeline = Pipeline(config)
     config = pipeline.config
     config.save(out / "config.toml")
+    # Input positions consumed before the checkpoint (frames merged plus unreadable ones skipped).
+    already = int(pipeline.checkpoint_extra["positions"]) if "positions" in pipeline.checkpoint_extra else pipeline.frames
+    items, total, known = open_input(spec, frames=frames, sensor=sensor, seed=seed, skip=already)
     summary = RunSummary(out=out)
     rows: list[dict] = _rows_from_array(pipeline.checkpoint_extra.get("timings")) if resume else []
     truths: list[np.ndarray | None] = []
     last: FrameResult | None = None
     last_frame: RangeFrame | None = None
-    already = pipeline.frames
+    consumed = already
     started = time.perf_counter()
     wall_start = None
     from tqdm import tqdm
@@ -210,10 +228,12 @@ def run(
     try:
         for position, item in enumerate(items):
             if position < already:
-                # Merged before the checkpoint: only its ground truth is needed again.
-                truths.append(None if item.truth is None else item.truth.T_world_sensor)
+                # Merged before the checkpoint: only its true pose is needed again.
+                if item.error is None:
+                    truths.append(item.true_pose)
                 bar.update(1)
                 continue
+            consumed = position + 1
             if item.error is not None:
                 summary.skipped.append((item.source, item.error))
                 if config.run.on_bad_frame == "stop":
@@ -231,21 +251,21 @@ def run(
             viewer.update(result, pipeline)
             last, last_frame = result, frame
             known.setdefault("frame_period_ms", config.run.budget_ms or 1000.0 / frame.sensor.frame_rate)
-            truths.append(None if item.truth is None else item.truth.T_world_sensor)
+            truths.append(item.true_pose)
             rows.append({"frame": result.index, "timestamp": result.timestamp,
                          **{stage: result.timings[stage] for stage in STAGES}, "total": result.timings["total"],
                          "late": int(result.late), "deferred": int(result.deferred)})
             summary.frames += 1
             every = config.run.checkpoint_every
             if every and pipeline.frames % every == 0:
-                pipeline.save_checkpoint(checkpoint, extra={"timings": _rows_to_array(rows)})
+                pipeline.save_checkpoint(checkpoint, extra={"timings": _rows_to_array(rows), "positions": np.array(consumed)})
             bar.update(1)
     except KeyboardInterrupt:
         summary.stopped = "interrupted (Ctrl-C)"
     finally:
         bar.close()
     summary.seconds = time.perf_counter() - started
-    pipeline.save_checkpoint(checkpoint, extra={"timings": _rows_to_array(rows)})
+    pipeline.save_checkpoint(checkpoint, extra={"timings": _rows_to_array(rows), "positions": np.array(consumed)})
     surfaces = pipeline.finish()
     summary.late, summary.postponed = pipeline.late, pipeline.postponed
     _write_outputs(out, pipeline, surfaces, rows, truths, known, summary, last, last_frame)

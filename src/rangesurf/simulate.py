@@ -1311,6 +1311,7 @@ def iter_sequence(
     seed: int = 0,
     noise: SimulationNoise | None = None,
     trajectory: np.ndarray | None = None,
+    start: int = 0,
 ) -> Iterator[tuple[RangeFrame, GroundTruth]]:
     """Yield ``(frame, truth)`` of a robot recording ``n_frames`` frames in a scene.
 
@@ -1334,6 +1335,9 @@ def iter_sequence(
     trajectory : (n_frames, 4, 4) array, optional
         ``T_world_sensor`` per frame; default `default_trajectory` at the
         sensor's frame rate.
+    start : int
+        Begin at frame ``start`` (the same frames as the whole sequence's
+        from there on, without simulating those before: a resumed run).
 
     Yields
     ------
@@ -1368,14 +1372,17 @@ def iter_sequence(
             raise ValueError(
                 f"trajectory must have shape ({n_frames}, 4, 4) for n_frames={n_frames}, got {poses.shape}"
             )
+    if isinstance(start, bool) or not isinstance(start, (int, np.integer)) or not 0 <= start <= n_frames:
+        raise ValueError(f"start must be an integer in [0, {n_frames}], got {start!r}")
     children = np.random.SeedSequence(seed).spawn(n_frames)
-    return _simulated_frames(scene, sensor, poses, children, noise)
+    return _simulated_frames(scene, sensor, poses, children, noise, int(start))
 
 
 def _simulated_frames(
-    scene: Scene, sensor: SensorModel, poses: np.ndarray, children: list, noise: SimulationNoise | None
+    scene: Scene, sensor: SensorModel, poses: np.ndarray, children: list, noise: SimulationNoise | None, start: int
 ) -> Iterator[tuple[RangeFrame, GroundTruth]]:
-    for k, (pose, child) in enumerate(zip(poses, children)):
+    for k in range(start, len(poses)):
+        pose, child = poses[k], children[k]
         yield simulate_frame(
             scene, sensor, pose, noise=noise, rng=np.random.default_rng(child), timestamp=k / sensor.frame_rate,
             source=f"simulated:{scene.name}/{sensor.name}/frame{k:04d}",
