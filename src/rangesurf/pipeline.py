@@ -184,9 +184,9 @@ class Pipeline:
         if self.model.cell_size is None:
             # Two pixel footprints: the model's vertices need not be denser than the sensor's noise
             # lets them be told apart, and merging costs scale with the vertices fused.
-            self.model.cell_size = max(2.0 * _median_footprint(frame, np.where(finite, smooth, np.nan)), 0.01)
+            self.model.cell_size = max(2.0 * _median_footprint(frame, smooth), 0.01)
         vertex_sets = segment_vertices(points, segmentation, range_sigma=sigma,
-                                       stride=self._stride(frame, np.where(finite, smooth, np.nan)))
+                                       stride=self._stride(frame, smooth))
         frame_surfaces = []
         if self.config.mesh.frame_surfaces:
             frame_surfaces = triangulate_segments(points, segmentation, max_edge_pixels=self.config.mesh.max_edge_pixels,
