@@ -60,7 +60,8 @@ class RegisterSettings:
 
     ``decimate``: register on every n-th row and column (None: 2 from
     200,000 pixels on, else 1) -- ICP needs far fewer points than a depth
-    camera gives.
+    camera gives. ``icp_variance_scale``: how much ICP's independent-residual
+    covariance understates its error (see `FrameTracker`).
     """
 
     max_correspondence_distance: float = 0.1
@@ -69,6 +70,7 @@ class RegisterSettings:
     keyframe_distance: float = 0.3
     keyframe_angle: float = 10.0
     decimate: int | None = None
+    icp_variance_scale: float = 30.0
 
 
 @dataclass(frozen=True)
@@ -143,7 +145,7 @@ class PipelineConfig:
         _check_choice("merge.volume", self.merge.volume, ("off", "unsegmented", "all"))
         _check_choice("run.on_bad_frame", self.run.on_bad_frame, ("skip", "stop"))
         for name in ("register.max_correspondence_distance", "register.odometry_sigma_rotation",
-                     "register.odometry_sigma_translation", "merge.max_normal_angle", "mesh.max_edge_pixels",
+                     "register.odometry_sigma_translation", "register.icp_variance_scale", "merge.max_normal_angle", "mesh.max_edge_pixels",
                      "mesh.max_view_angle"):
             _check_positive(name, self._get(name))
         for name in ("merge.cell_size", "merge.max_plane_distance", "merge.voxel_size", "run.budget_ms"):

@@ -65,8 +65,8 @@ class Level:
     spacing : float
         Median distance (metres) between neighbouring kept vertices.
     vertex_error : (count,) float32
-        Per kept vertex, the largest error of the removed vertices nearest
-        to it: the level-of-detail uncertainty UL4 of the shown level.
+        Per kept vertex, the RMS error of the removed vertices nearest to
+        it: the level-of-detail uncertainty UL4 of the shown level.
     """
 
     count: int
@@ -227,8 +227,12 @@ def build_levels_at(surface: Surface, counts: list[int]) -> list[Level]:
         spacing = float(np.median(tree.query(xy[kept], k=2)[0][:, 1])) if count > 1 else 0.0
         vertex_error = np.zeros(count, np.float32)
         if count < surface.n_vertices:
+            # A standard deviation, like the other levels: the RMS error of the removed vertices
+            # nearest to each kept one.
             _, nearest = tree.query(xy[order[count:]])
-            np.maximum.at(vertex_error, nearest, error[count:])
+            squares = np.bincount(nearest, weights=error[count:].astype(np.float64) ** 2, minlength=count)
+            removed = np.bincount(nearest, minlength=count)
+            vertex_error = np.sqrt(squares / np.maximum(removed, 1)).astype(np.float32)
         levels.append(
             Level(count=count, faces=faces.astype(np.int32), error=float(error[count]) if count < len(error) else 0.0,
                   spacing=spacing, vertex_error=vertex_error)

@@ -194,6 +194,9 @@ class Pipeline:
         lap("surfaces")
 
         step = self._decimation(frame)
+        # ICP's residuals are correlated over a patch of the full-resolution grid; on a thinned grid
+        # neighbours lie further apart and err less alike (calibrated: benchmarks/calibration.py).
+        self.tracker.icp_variance_scale = self.config.register.icp_variance_scale / step
         icp_points, icp_sigma = points[::step, ::step], sigma[::step, ::step]
         icp_projection = projection
         if projection is not None and step > 1:
@@ -207,7 +210,8 @@ class Pipeline:
         tracked = self.tracker.track(icp_points, normals, projection=icp_projection, odometry=frame.pose)
         lap("register")
 
-        merge_step = self.model.add_frame(vertex_sets, tracked.T_world_sensor, covariance=tracked.step_covariance,
+        # The pose's world covariance (drift included): the model is compared with the world.
+        merge_step = self.model.add_frame(vertex_sets, tracked.T_world_sensor, covariance=tracked.covariance,
                                           timestamp=frame.timestamp)
         lap("merge")
 
@@ -217,7 +221,7 @@ class Pipeline:
             mask = finite if self.config.merge.volume == "all" else finite & (segmentation.labels == 0)
             if mask.any():
                 self.volume.integrate(points, tracked.T_world_sensor, range_sigma=np.where(finite, sigma, 1.0), mask=mask,
-                                      pose_covariance=tracked.step_covariance)
+                                      pose_covariance=tracked.covariance)
         lap("volume")
 
         budget = self._budget_ms(frame)

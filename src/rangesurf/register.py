@@ -440,6 +440,18 @@ class FrameTracker:
         Metres and degrees of motion from the keyframe that make a new one
         (0: every frame is a keyframe, plain frame-to-frame tracking).
     method : {"point_to_plane", "point_to_point"}
+    icp_variance_scale : float
+        How many times larger the true variance of ICP's motion is than
+        `icp`'s covariance, which counts every residual as independent. A
+        denoised frame's residuals are not: smoothing makes neighbours err
+        alike, and the keyframe's own noise is shared by every frame
+        registered to it. 30 is calibrated for every pixel of a frame
+        (the pipeline divides it by its decimation step, as thinned
+        neighbours err less alike) on simulated SR-3000 and Kinect
+        sequences, where +-2 sigma then holds 90-98 % of the tracked
+        poses' errors along the surface normals
+        (``benchmarks/calibration.py``). It weighs ICP against the prior and
+        sets the tracked covariance, hence the model's UL3.
 
     Examples
     --------
@@ -464,6 +476,7 @@ class FrameTracker:
         keyframe_distance: float = 0.3,
         keyframe_angle: float = 10.0,
         method: str = "point_to_plane",
+        icp_variance_scale: float = 30.0,
     ) -> None:
         if method not in ICP_METHODS:
             raise ValueError(f"method must be one of {ICP_METHODS}, got {method!r}")
@@ -471,6 +484,9 @@ class FrameTracker:
             raise ValueError(f"odometry_sigma must be two values > 0 (radians, metres), got {odometry_sigma!r}")
         if not (keyframe_distance >= 0 and keyframe_angle >= 0):
             raise ValueError("keyframe_distance and keyframe_angle must be >= 0")
+        if not (math.isfinite(icp_variance_scale) and icp_variance_scale > 0):
+            raise ValueError(f"icp_variance_scale must be finite and > 0, got {icp_variance_scale!r}")
+        self.icp_variance_scale = float(icp_variance_scale)
         self.max_correspondence_distance = float(max_correspondence_distance)
         self.method = method
         self.keyframe_distance = float(keyframe_distance)
@@ -592,7 +608,7 @@ class FrameTracker:
         delta = np.r_[Rotation.from_matrix(difference[:3, :3]).as_rotvec(), difference[:3, 3]]
         # Floored at (0.1 mm)^2: noise-free data would otherwise claim unbounded information.
         variance = max(result.rmse**2, _MIN_RESIDUAL_VARIANCE) if math.isfinite(result.rmse) else 1.0
-        measured = result.information / variance
+        measured = result.information / (variance * self.icp_variance_scale)
         if result.degenerate:
             # Whatever ICP did along the directions it cannot see is noise: drop them outright.
             keep = np.eye(6) - result.unconstrained.T @ result.unconstrained

@@ -7,17 +7,22 @@ along its normal:
   intensity (`SensorModel.range_sigma`), seen along the normal
   (``sigma |cos(incidence)|``), reduced by what denoising removed as the
   data shows it (a planar segment's fit residual against the noise the
-  model predicts for it); for a fused vertex, the noise of the average of
-  its observations, allowing for a share (0.3) of each frame's error that
-  the frames have in common: ``var = 0.7 / sum(1 / sigma_i^2) + 0.3 mean(sigma_i^2)``
+  model predicts for it); for a fused vertex, the noise of the
+  inverse-variance weighted mean of its observations,
+  ``1 / sum(1 / sigma_i^2)``, scaled by how much those observations really
+  scatter against the model's prediction once several are in
   (`rangesurf.merge.planar`).
 * **UL2, patch fit**: for a frame's segment, its plane fit's RMS residual;
   for a fused vertex, the part of its distance from its patch's fitted plane
-  that UL1 does not explain (0.75 of that distance as one sigma).
-* **UL3, registration and merging**: the pose covariance projected on the
-  normal (``J Sigma J^T`` with ``J = [p x n, n]``) and the disagreement of
-  the fused observations beyond their noise; for bridged gaps, the gap.
-* **UL4, level of detail**: the height error of the removed vertices nearest
+  that UL1 does not explain (half that distance as one sigma: the +-2 sigma
+  band reaches the plane).
+* **UL3, registration and merging**: the world pose covariance of the
+  frames that saw the vertex (drift included) projected on the normal
+  (``J Sigma J^T`` with ``J = [p x n, n]``), and the disagreement of the
+  fused observations beyond their noise; for bridged gaps, the gap. ICP's
+  covariance is scaled up for the correlation of its residuals
+  (`rangesurf.register.FrameTracker`, ``icp_variance_scale``).
+* **UL4, level of detail**: the RMS height error of the removed vertices nearest
   to a kept one, at the level shown (`rangesurf.lod`).
 
 Beyond the thesis, the levels are checked against ground truth: `coverage`

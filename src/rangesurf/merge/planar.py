@@ -45,10 +45,10 @@ from rangesurf.mesh import Surface, _grid_faces
 __all__ = ["PlanarPatch", "Observations", "CELL_FIELDS"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
-# Correlation of a surface point's errors between frames (see PlanarPatch.surface).
-_SHARED_ERROR = 0.3
+# How many observations the sensor model's noise prediction is worth against a cell's measured scatter.
+_PRIOR_OBSERVATIONS = 2.0
 # One sigma of patch-fit error per metre a fused vertex lies off its patch's plane (beyond its noise).
-_OFF_PLANE_SIGMA = 0.75
+_OFF_PLANE_SIGMA = 0.5
 
 # Per-cell sums, all weighted by the observation weight w = 1 / (total variance) except `information`
 # (sum of 1 / sensor variance) and `count`.
@@ -368,20 +368,22 @@ class PlanarPatch:
         weight = self.sums["weight"]
         spread = np.maximum(self.sums["hh"] / weight - h**2, 0.0)
         noise_mean = self.sums["noise"] / weight
-        # Averaging n observations shrinks their noise by sqrt(n) only if the errors are independent;
-        # a denoised frame's errors are partly shared between frames (the same crease rounded the same
-        # way), so a share of the variance never averages out (equicorrelated mean: var (rho + (1 -
-        # rho) / n)); rho calibrated on simulated sequences (benchmarks/calibration.py).
-        ul1 = np.sqrt((1.0 - _SHARED_ERROR) / self.sums["information"] + _SHARED_ERROR * noise_mean)
+        # Sensor noise of the fused height: the variance of an inverse-variance weighted mean of
+        # independent observations, 1 / sum(1 / sigma_i^2), with the sigma_i the sensor model's (after
+        # denoising) -- scaled by how much the observations of this cell actually scatter against what
+        # the model predicts for them, once several are in: the model's prediction counts as
+        # _PRIOR_OBSERVATIONS observations, the measured spread as the rest.
+        seen = np.maximum(self.sums["count"] - 1.0, 0.0)
+        scatter = (_PRIOR_OBSERVATIONS * noise_mean + seen * spread) / (_PRIOR_OBSERVATIONS + seen)
+        ul1 = np.sqrt(scatter / np.maximum(noise_mean, 1e-30) / self.sums["information"])
         a, b, c = self.fitted_plane()
         # Patch fit: a fused vertex off its patch's plane by more than its noise explains shows local
-        # model error there (a rounded crease, a leftover flying pixel); 0.75 of that distance counts
-        # as one sigma, so that the combined +-2 sigma band reaches past the plane (calibrated on
-        # simulated sequences: `rangesurf.uncertainty`, benchmarks/calibration.py).
+        # model error there (a rounded crease, a leftover flying pixel); half that distance counts as
+        # one sigma, so that the +-2 sigma band just reaches the plane.
         off_plane = np.abs(h - (a * u + b * v + c))
         ul2 = np.sqrt(np.maximum((_OFF_PLANE_SIGMA * off_plane) ** 2 - ul1**2, 0.0))
-        # Registration: the weighted mean variance of the observations' poses; merging: how much the
-        # fused heights disagree beyond what the sensor noise explains.
+        # Registration: the weighted mean variance of the observations' poses (world covariance, drift
+        # included); merging: how much the fused heights disagree beyond what the sensor noise explains.
         ul3 = np.sqrt(self.sums["registration"] / weight + np.maximum(spread - noise_mean, 0.0))
         fill_rows, fill_columns = np.nonzero(filled)
         fill_u = (fill_columns + column0 + 0.5) * self.cell_size
