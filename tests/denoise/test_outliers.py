@@ -10,10 +10,12 @@ import pytest
 import rangesurf as rs
 from rangesurf.denoise.outliers import (
     _DIRECTIONS,
+    _count_close_neighbours,
     _flying_kernel,
     _flying_reference,
     _isolated_kernel,
     _isolated_reference,
+    _median_in_place,
     _sigma_image,
     remove_cutoff,
     remove_flying_pixels,
@@ -119,6 +121,143 @@ def test_kernels_match_references_on_simulated_frame(arena):
         _flying_kernel(frame.range, sigma, 0.05, 3.0, 3.0, _DIRECTIONS, rays, cos_max_angle),
         _flying_reference(frame.range, sigma, 0.05, 3.0, 3.0, rays, 10.0),
     )
+
+
+# Kernels: the vectorised first pass (4-neighbour support for
+# `_isolated_kernel`, tests 1-2 for `_flying_kernel`) against the full test,
+# at exact ties. With sigma 1/32 and threshold 4 the tolerance is exactly
+# 1/8, and ranges on a 1/8 grid make every comparison an exact tie or a
+# clear miss; `np.nextafter` puts a value one float32 step beyond a tie.
+
+TIE_SIGMA = 1.0 / 32.0  # threshold 4 -> tolerance exactly 0.125
+
+
+def _tie_image(shape, seed):
+    rng = np.random.default_rng(seed)
+    image = 2.0 + rng.integers(0, 17, shape) / 8.0
+    image[rng.random(shape) < 0.1] = np.nan
+    return image.astype(np.float32)
+
+
+def _up(value):
+    return np.nextafter(np.float32(value), np.float32(np.inf))
+
+
+def _down(value):
+    return np.nextafter(np.float32(value), np.float32(-np.inf))
+
+
+@pytest.mark.parametrize("shape", [(9, 11), (7, 1), (1, 7), (2, 3), (16, 16)])
+@pytest.mark.parametrize("radius, min_support", [(1, 1), (1, 2), (1, 3), (1, 4), (2, 3), (2, 6), (3, 5)])
+def test_isolated_kernel_matches_reference_at_ties(shape, radius, min_support):
+    for seed in range(4):
+        image = _tie_image(shape, seed)
+        sigma = np.full(shape, TIE_SIGMA)
+        np.testing.assert_array_equal(
+            _isolated_kernel(image, sigma, 4.0, radius, min_support),
+            _isolated_reference(image, sigma, 4.0, radius, min_support),
+        )
+
+
+def _close_counts(image, sigma, threshold):
+    counts = np.empty(image.shape, np.int32)
+    for i in range(image.shape[0]):
+        _count_close_neighbours(image, sigma, threshold, i, counts[i])
+    return counts
+
+
+def test_isolated_first_pass_and_full_test_agree_near_the_tolerance():
+    sigma = np.full((3, 3), TIE_SIGMA)
+    # 4-neighbours exactly at the tolerance support the centre: the first pass keeps it.
+    image = np.full((3, 3), 5.0, np.float32)
+    image[1, 1] = 2.0
+    image[0, 1] = image[1, 0] = 2.125
+    image[2, 1] = image[1, 2] = 1.875
+    assert _close_counts(image, sigma, 4.0)[1, 1] == 4
+    for min_support in (1, 2, 4):
+        removed = _isolated_kernel(image, sigma, 4.0, 1, min_support)
+        np.testing.assert_array_equal(removed, _isolated_reference(image, sigma, 4.0, 1, min_support))
+        assert not removed[1, 1]
+    # One float32 step beyond it they do not, and the first pass leaves the
+    # centre to the full test; two diagonal neighbours exactly at the
+    # tolerance (NaN opposite them, so no line through the centre) keep it
+    # with min_support 2, not 3 (the median is then beyond the tolerance).
+    image[0, 1] = image[1, 0] = image[2, 1] = image[1, 2] = _up(2.125)
+    image[0, 0], image[0, 2] = 2.125, 1.875
+    image[2, 2] = image[2, 0] = np.nan
+    assert _close_counts(image, sigma, 4.0)[1, 1] == 0
+    for min_support, centre_removed in ((1, False), (2, False), (3, True)):
+        removed = _isolated_kernel(image, sigma, 4.0, 1, min_support)
+        np.testing.assert_array_equal(removed, _isolated_reference(image, sigma, 4.0, 1, min_support))
+        assert removed[1, 1] == centre_removed
+    # Without the diagonals the centre has no support at all; a neighbour
+    # below it exactly at the tolerance puts it on a line and keeps it.
+    image[0, 0] = image[0, 2] = np.nan
+    assert _isolated_kernel(image, sigma, 4.0, 1, 1)[1, 1]
+    image[2, 1] = 1.875
+    removed = _isolated_kernel(image, sigma, 4.0, 1, 2)
+    np.testing.assert_array_equal(removed, _isolated_reference(image, sigma, 4.0, 1, 2))
+    assert not removed[1, 1]
+
+
+@pytest.mark.parametrize("count", range(1, 60))
+def test_median_in_place_gives_numpy_median(count):
+    rng = np.random.default_rng(count)
+    values = rng.integers(0, 5, count) / 4.0 + rng.normal(0, 1e-3, count) * (rng.random(count) < 0.5)
+    assert _median_in_place(values.copy(), count) == np.median(values)
+    padded = np.concatenate([values, [np.nan, -1.0]])  # values beyond count are ignored
+    assert _median_in_place(padded, count) == np.median(values)
+
+
+@pytest.mark.parametrize("shape", [(9, 11), (7, 1), (1, 7), (2, 3), (4, 4), (16, 16)])
+@pytest.mark.parametrize("step_deg", [None, 2.0])
+def test_flying_kernel_matches_reference_at_ties(shape, step_deg):
+    # jump 1/16: gap > jump * low is a tie for low = 2 and a gap of 1/8;
+    # slope_ratio 3: a gap of 3/8 ties with an outer step of 1/8.
+    rays = None if step_deg is None else _fan_rays(shape, step_deg)
+    kernel_rays = NO_RAYS if rays is None else rays
+    for seed in range(4):
+        image = _tie_image(shape, seed)
+        sigma = np.full(shape, TIE_SIGMA)
+        expected = _flying_reference(image, sigma, 1 / 16, 4.0, 3.0, rays, 30.0)
+        got = _flying_kernel(image, sigma, 1 / 16, 4.0, 3.0, _DIRECTIONS, kernel_rays, np.cos(np.radians(30.0)))
+        np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("transpose", [False, True])
+@pytest.mark.parametrize(
+    "far, centre, expected",
+    [
+        (3.0, 2.125, False),  # exactly low + tolerance: not between
+        (3.0, _up(2.125), True),
+        (3.0, 2.875, False),  # exactly high - tolerance
+        (3.0, _down(2.875), True),
+        (3.0, 2.5, True),
+        (2.5, 2.25, False),  # gap exactly jump * low (jump 1/4)
+        (_up(2.5), 2.25, True),
+    ],
+)
+def test_flying_first_pass_and_full_test_agree_near_the_thresholds(far, centre, expected, transpose):
+    # One line of a step: 2 2 2 centre far far far, in a single row (or
+    # column), so only that line lies inside the image.
+    image = np.array([[2.0, 2.0, 2.0, centre, far, far, far]], np.float32)
+    if transpose:
+        image = np.ascontiguousarray(image.T)
+    sigma = np.full(image.shape, TIE_SIGMA)
+    removed = _flying_kernel(image, sigma, 0.25, 4.0, 3.0, _DIRECTIONS, NO_RAYS, 0.0)
+    np.testing.assert_array_equal(removed, _flying_reference(image, sigma, 0.25, 4.0, 3.0))
+    assert removed.sum() == expected and removed.flat[3] == expected
+
+
+def test_float32_rays_give_the_float64_result(arena):
+    # float32 rays (as frames carry them) go to the kernel without a float64 copy.
+    frame = arena[0][0]
+    sigma = _sensor_sigma(frame)
+    rays = frame.rays.astype(np.float32)
+    _, removed = remove_flying_pixels(frame.range, range_sigma=sigma, rays=rays, return_mask=True)
+    _, removed64 = remove_flying_pixels(frame.range, range_sigma=sigma, rays=rays.astype(np.float64), return_mask=True)
+    np.testing.assert_array_equal(removed, removed64)
+    assert removed.any()
 
 
 # --------------------------------------------------------------------------
