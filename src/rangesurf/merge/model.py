@@ -22,6 +22,7 @@ import os
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
+import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
@@ -36,6 +37,7 @@ __all__ = ["GlobalModel", "MergeStep", "NONPLANAR_MODES"]
 NONPLANAR_MODES = ("keep", "drop")
 _FORMAT_VERSION = 1
 _UNCONSTRAINED_VARIANCE = 1e4
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 @dataclass(frozen=True)
@@ -246,7 +248,8 @@ class GlobalModel:
         # Only patches whose box comes within touching distance: the cost per frame stays the same
         # however large the model grows.
         margin = reach + (self.bridge + 2) * self.cell_size
-        low, high = observations.points.min(axis=0) - margin, observations.points.max(axis=0) + margin
+        low, high = _bounding_box(observations.points)
+        low, high = low - margin, high + margin
         for index, patch in enumerate(self.patches):
             if patch.normal @ plane[:3] < cosine:
                 continue
@@ -479,16 +482,10 @@ def _observations(surface: Surface, points: np.ndarray, normal: np.ndarray, cova
     fit = surface.uncertainty["UL2"].astype(np.float64) ** 2 if "UL2" in surface.uncertainty else zero
     registration = zero
     if covariance is not None:
-        # A left perturbation (w, t) moves p by w x p + t; along the normal n that is w . (p x n) + t . n,
-        # so the variance is a' S_rr a + 2 a' S_rt n + n' S_tt n with a = p x n. Unconstrained
-        # directions of a degenerate registration (inf) count as 100 m (rad) standard deviations:
+        # Unconstrained directions of a degenerate registration (inf) count as 100 m (rad) standard deviations:
         # vertices they move get next to no weight, vertices they do not move are unaffected.
         bounded = np.where(np.isfinite(covariance), covariance, _UNCONSTRAINED_VARIANCE)
-        arm = np.cross(points, normal)
-        # Element-wise products rather than BLAS calls (see PlanarPatch.fitted_plane).
-        turned = arm[:, :1] * bounded[0, :3] + arm[:, 1:2] * bounded[1, :3] + arm[:, 2:] * bounded[2, :3]
-        mixed = bounded[:3, 3:] @ normal
-        registration = (turned * arm).sum(axis=1) + 2.0 * (arm * mixed).sum(axis=1) + normal @ bounded[3:, 3:] @ normal
+        registration = _registration_variance(np.ascontiguousarray(points, np.float64), np.asarray(normal, np.float64), bounded)
     noise = np.nan_to_num(noise, nan=0.0)
     fit = np.nan_to_num(fit, nan=0.0)
     return Observations(points, noise, fit, np.maximum(registration, 0.0))
@@ -500,3 +497,42 @@ def _moved(surface: Surface, points: np.ndarray, rotation: np.ndarray) -> Surfac
         pixels=surface.pixels, plane=surface.plane, segment=surface.segment,
         uncertainty={level: values.copy() for level, values in surface.uncertainty.items()},
     )
+
+
+@numba.njit(**_JIT)
+def _registration_variance(points, normal, covariance):  # pragma: no cover - compiled
+    """Per point, the variance along ``normal`` that a pose covariance (rotation, translation) gives it.
+
+    A left perturbation (w, t) moves p by w x p + t; along n that is
+    w . a + t . n with a = p x n, so the variance is [a, n] S [a, n]'.
+    """
+    nx, ny, nz = normal[0], normal[1], normal[2]
+    jacobian = np.empty(6)
+    jacobian[3], jacobian[4], jacobian[5] = nx, ny, nz
+    variance = np.empty(points.shape[0])
+    for k in range(points.shape[0]):
+        x, y, z = points[k, 0], points[k, 1], points[k, 2]
+        jacobian[0], jacobian[1], jacobian[2] = y * nz - z * ny, z * nx - x * nz, x * ny - y * nx
+        total = 0.0
+        for i in range(6):
+            row = 0.0
+            for j in range(6):
+                row += covariance[i, j] * jacobian[j]
+            total += jacobian[i] * row
+        variance[k] = total
+    return variance
+
+
+@numba.njit(**_JIT)
+def _bounding_box(points):  # pragma: no cover - compiled
+    """(low, high) corners of (N, 3) points, N >= 1; one pass (NumPy's min over axis 0 of a narrow array is slow)."""
+    low = points[0].copy()
+    high = points[0].copy()
+    for k in range(1, points.shape[0]):
+        for axis in range(3):
+            value = points[k, axis]
+            if value < low[axis]:
+                low[axis] = value
+            elif value > high[axis]:
+                high[axis] = value
+    return low, high

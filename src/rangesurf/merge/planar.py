@@ -51,7 +51,7 @@ _PRIOR_OBSERVATIONS = 2.0
 _OFF_PLANE_SIGMA = 0.5
 
 # Per-cell sums, all weighted by the observation weight w = 1 / (total variance) except `information`
-# (sum of 1 / sensor variance) and `count`.
+# (sum of 1 / sensor variance) and `count`. `_fuse_points` writes them by position, in this order.
 CELL_FIELDS = ("weight", "u", "v", "h", "hh", "noise", "fit", "registration", "information", "count")
 
 
@@ -281,18 +281,24 @@ class PlanarPatch:
 
     def fuse(self, observations: Observations, frame: int) -> tuple[int, int]:
         """Add observed vertices to their cells; returns (cells updated, cells added)."""
-        if len(observations.points) == 0:
+        count = len(observations.points)
+        if count == 0:
             return 0, 0
-        local = self.local(observations.points)
-        weight = 1.0 / np.maximum(observations.variance, 1e-12)
-        contributions = {
-            "weight": weight, "u": weight * local[:, 0], "v": weight * local[:, 1], "h": weight * local[:, 2],
-            "hh": weight * local[:, 2] ** 2, "noise": weight * observations.noise, "fit": weight * observations.fit,
-            "registration": weight * observations.registration,
-            "information": 1.0 / np.maximum(observations.noise, 1e-12), "count": np.ones(len(local)),
-        }
-        self.moments += _moments(weight, local[:, 0], local[:, 1], local[:, 2])
-        return self._accumulate(local, contributions, frame)
+        points = np.ascontiguousarray(observations.points, np.float64)
+        noise, fit, registration = (np.ascontiguousarray(values, np.float64)
+                                    for values in (observations.noise, observations.fit, observations.registration))
+        self._stamp += 1
+        updated = added = 0
+        start = 0
+        while start < count:
+            # Room for every remaining point to open a cell, with the table at most half full.
+            self._grow(self._count + count - start)
+            start, self._count, new_updated, new_added = _fuse_points(
+                points, noise, fit, registration, self.origin, self.axes, self.cell_size, start, self._coords,
+                self._cells, self._count, self._table_keys, self._table_slots, self._stamps, self._stamp, self.moments)
+            updated += new_updated
+            added += new_added
+        return self._fused(frame, updated, added)
 
     def absorb(self, other: PlanarPatch, frame: int) -> tuple[int, int]:
         """Fuse another patch's cells into this one (two patches found to be one plane).
@@ -331,6 +337,10 @@ class PlanarPatch:
                 self._table_slots, self._stamps, self._stamp)
             updated += new_updated
             added += new_added
+        return self._fused(frame, updated, added)
+
+    def _fused(self, frame: int, updated: int, added: int) -> tuple[int, int]:
+        """Book-keeping after cells changed: views, the frame list, the revision."""
         self._views()
         if not self.frames or self.frames[-1] != frame:
             self.frames.append(frame)
@@ -424,6 +434,60 @@ def _moments(weight: np.ndarray, u: np.ndarray, v: np.ndarray, h: np.ndarray) ->
     wu, wv = weight * u, weight * v
     return np.array([weight.sum(), wu.sum(), wv.sum(), (weight * h).sum(), (wu * u).sum(), (wu * v).sum(),
                      (wv * v).sum(), (wu * h).sum(), (wv * h).sum()])
+
+
+@numba.njit(**_JIT)
+def _fuse_points(points, noise, fit, registration, origin, axes, cell_size, start, coords, cells, count, table_keys,
+                 table_slots, stamps, stamp, moments):  # pragma: no cover - compiled
+    """`PlanarPatch.fuse` from point ``start`` on, in one pass: each point into the patch frame, its weight
+    1 / (total variance), its sums (the `CELL_FIELDS`) into its cell and the patch's plane-fit moments.
+
+    Stops early like `_accumulate_cells` (which it mirrors, for fusion's own sums) when the storage is
+    full; returns (next point, cell count, cells updated, cells added).
+    """
+    updated = 0
+    added = 0
+    for k in range(start, points.shape[0]):
+        dx, dy, dz = points[k, 0] - origin[0], points[k, 1] - origin[1], points[k, 2] - origin[2]
+        u = dx * axes[0, 0] + dy * axes[0, 1] + dz * axes[0, 2]
+        v = dx * axes[1, 0] + dy * axes[1, 1] + dz * axes[1, 2]
+        h = dx * axes[2, 0] + dy * axes[2, 1] + dz * axes[2, 2]
+        column, row = np.int32(np.floor(u / cell_size)), np.int32(np.floor(v / cell_size))
+        slot = lookup(table_keys, table_slots, column, row, 0)
+        if slot < 0:
+            if count >= coords.shape[0]:
+                return k, count, updated, added
+            slot = count
+            count += 1
+            coords[slot, 0], coords[slot, 1], coords[slot, 2] = column, row, 0
+            insert(table_keys, table_slots, column, row, 0, slot)
+            stamps[slot] = stamp
+            added += 1
+        elif stamps[slot] != stamp:
+            stamps[slot] = stamp
+            updated += 1
+        weight = 1.0 / max(noise[k] + fit[k] + registration[k], 1e-12)
+        wu, wv, wh = weight * u, weight * v, weight * h
+        cells[slot, 0] += weight
+        cells[slot, 1] += wu
+        cells[slot, 2] += wv
+        cells[slot, 3] += wh
+        cells[slot, 4] += wh * h
+        cells[slot, 5] += weight * noise[k]
+        cells[slot, 6] += weight * fit[k]
+        cells[slot, 7] += weight * registration[k]
+        cells[slot, 8] += 1.0 / max(noise[k], 1e-12)
+        cells[slot, 9] += 1.0
+        moments[0] += weight
+        moments[1] += wu
+        moments[2] += wv
+        moments[3] += wh
+        moments[4] += wu * u
+        moments[5] += wu * v
+        moments[6] += wv * v
+        moments[7] += wu * h
+        moments[8] += wv * h
+    return points.shape[0], count, updated, added
 
 
 @numba.njit(**_JIT)
