@@ -104,6 +104,33 @@ def test_separate_planes_stay_separate():
     assert len(model.patches) == 3
 
 
+def _panel(angle_deg, x_range, sigma=0.001, spacing=0.02, height=0.6):
+    """A panel through the line x = 1, z = 2 (along y), turned by ``angle_deg`` about it from the plane z = 2."""
+    angle = np.radians(angle_deg)
+    rows, cols = np.mgrid[0:height:spacing, x_range[0]:x_range[1]:spacing]
+    along = cols.ravel() - 1.0
+    vertices = np.column_stack([1.0 + along * np.cos(angle), rows.ravel(), 2.0 + along * np.sin(angle)])
+    normal = np.array([np.sin(angle), 0.0, -np.cos(angle)])
+    plane = np.r_[normal, -normal @ [1.0, 0.0, 2.0]]
+    count = len(vertices)
+    return Surface(vertices, triangulate_in_plane(vertices, plane), np.tile(normal, (count, 1)), np.full((count, 2), -1),
+                   plane=plane, uncertainty={"UL1": np.full(count, sigma)})
+
+
+def test_a_segment_between_two_planes_does_not_join_them():
+    """A floor and a ramp 13 degrees off it meet along a crease; a segment across the crease at 6.5 degrees comes
+    within the angle tolerance (10 degrees) of both, but the two patches are not one plane and stay apart."""
+    model = GlobalModel(cell_size=0.02)
+    model.add_frame([_panel(0.0, (0.0, 1.0))], np.eye(4))
+    model.add_frame([_panel(13.0, (1.0, 2.0))], np.eye(4))
+    assert len(model.patches) == 2
+    step = model.add_frame([_panel(6.5, (0.8, 1.2))], np.eye(4))
+    assert step.fused == 1 and step.joined == 0
+    assert len(model.patches) == 2
+    angles = sorted(np.degrees(np.arccos(np.clip(-patch.world_plane()[2], -1, 1))) for patch in model.patches)
+    assert angles == pytest.approx([0.0, 13.0], abs=1.5)
+
+
 @pytest.fixture(scope="module")
 def arena_run():
     frames, truths = simulate.simulate_sequence("arena", "sr3000", 12, seed=3)

@@ -270,7 +270,10 @@ class GlobalModel:
             return
         candidates.sort(reverse=True)
         target = self.patches[candidates[0][1]]
-        joined = [self.patches[index] for _, index in candidates[1:]]
+        # The observation may bridge two patches that are one plane (then they join), or merely come
+        # within the tolerances of two different ones (a floor and a ramp 13 degrees off it, each within
+        # 10 degrees of a segment between them): join only patches that agree with the target itself.
+        joined = [self.patches[index] for _, index in candidates[1:] if _coplanar(target, self.patches[index], cosine, reach)]
         for other in joined:
             target.absorb(other, frame)
         if joined:
@@ -457,6 +460,18 @@ class GlobalModel:
             raise FormatError(source, f"{len(model.poses)} poses, {len(model.timestamps)} timestamps and "
                               f"{len(model.history)} history entries disagree", where=f"field {prefix + 'poses'!r}")
         return model
+
+
+def _coplanar(patch: PlanarPatch, other: PlanarPatch, cosine: float, reach: float) -> bool:
+    """Whether two patches' fitted planes agree: normals within the angle, the other's cells within reach of the plane."""
+    plane, other_plane = patch.world_plane(), other.world_plane()
+    if plane[:3] @ other_plane[:3] < cosine:
+        return False
+    u, v, h = other.cell_means()
+    # The median over a sample of the cells, as for observations (see GlobalModel._merge).
+    step = max(1, len(u) // 2000)
+    points = other.origin + np.column_stack([u[::step], v[::step], h[::step]]) @ other.axes
+    return bool(np.median(patch.distance_to(points)) <= reach)
 
 
 def _concatenate(parts: list[np.ndarray], dtype: type) -> np.ndarray:
