@@ -278,3 +278,51 @@ def test_tracker_falls_back_to_the_prior_without_overlap():
     tracked = tracker.track(far_away, normals, odometry=step)
     assert tracked.fallback and tracked.registration is None
     assert np.allclose(tracked.T_world_sensor, step)
+
+
+def _corner(rng, count=6000):
+    """Floor and two walls meeting in a corner, with 1 mm of noise: every motion is constrained."""
+    a, b = rng.uniform(0, 2, (2, count))
+    side = rng.integers(0, 3, count)
+    points = np.choose(side[:, None], [np.column_stack([a, b, np.zeros(count)]), np.column_stack([a, np.zeros(count), b]),
+                                        np.column_stack([np.zeros(count), a, b])])
+    normals = np.eye(3)[[2, 1, 0]][side]
+    return points + rng.normal(0.0, 0.001, points.shape), normals
+
+
+def test_tracker_keeps_the_prior_when_icp_contradicts_it():
+    """ICP finds the true 1 cm step, but the prior claims no motion within 0.5 mm: beyond the chi-square gate the
+    prior's motion is kept and flagged; with a prior that allows the step, ICP's motion stands."""
+    from rangesurf.register import FrameTracker
+
+    target, normals = _corner(np.random.default_rng(4))
+    source = _corner(np.random.default_rng(7))[0] - [0.01, 0.0, 0.0]  # the corner sampled anew, moved
+    strict = FrameTracker(odometry_sigma=(1e-4, 5e-4))
+    strict.track(target, normals, odometry=np.eye(4))
+    kept = strict.track(source, normals, odometry=np.eye(4))
+    assert kept.fallback and kept.registration is None
+    assert np.allclose(kept.T_world_sensor, np.eye(4))
+    loose = FrameTracker(odometry_sigma=(0.01, 0.05))
+    loose.track(target, normals, odometry=np.eye(4))
+    moved = loose.track(source, normals, odometry=np.eye(4))
+    assert not moved.fallback and moved.T_world_sensor[0, 3] == pytest.approx(0.01, abs=1e-3)
+
+
+def test_a_corrected_pose_carries_on_to_the_next_frames():
+    """After `correct` shifts a tracked pose by 5 cm, the next frame (same motion again) is tracked from there."""
+    from rangesurf.register import FrameTracker
+
+    target, normals = _corner(np.random.default_rng(5))
+    step = np.eye(4)
+    step[0, 3] = 0.02
+    tracker = FrameTracker()
+    tracker.track(target, normals, odometry=np.eye(4))
+    second = tracker.track(target - [0.02, 0.0, 0.0], normals, odometry=step)
+    shifted = second.T_world_sensor.copy()
+    shifted[1, 3] += 0.05
+    tracker.correct(shifted, second.covariance * 0.5)
+    third = tracker.track(target - [0.04, 0.0, 0.0], normals, odometry=step @ step)
+    assert third.T_world_sensor[:3, 3] == pytest.approx([0.04, 0.05, 0.0], abs=2e-3)
+    assert np.trace(third.covariance) > np.trace(second.covariance * 0.5)
+    with pytest.raises(ValueError, match="tracked frame first"):
+        FrameTracker().correct(np.eye(4), np.eye(6))

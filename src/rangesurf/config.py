@@ -62,6 +62,9 @@ class RegisterSettings:
     200,000 pixels on, else 1) -- ICP needs far fewer points than a depth
     camera gives. ``icp_variance_scale``: how much ICP's independent-residual
     covariance understates its error (see `FrameTracker`).
+    ``align_to_model_every``: every n-th frame's pose is corrected by its
+    planes' fit to the model (`GlobalModel.align`: revisited places pull a
+    drifted pose back); 0 switches it off.
     """
 
     max_correspondence_distance: float = 0.1
@@ -71,6 +74,7 @@ class RegisterSettings:
     keyframe_angle: float = 10.0
     decimate: int | None = None
     icp_variance_scale: float = 30.0
+    align_to_model_every: int = 10
 
 
 @dataclass(frozen=True)
@@ -155,7 +159,7 @@ class PipelineConfig:
             value = self._get(name)
             if value is not None and value < 1:
                 raise ConfigError(f"config: {name} must be >= 1 or unset, got {value}")
-        for name in ("register.keyframe_distance", "register.keyframe_angle", "run.remesh_every", "run.checkpoint_every",
+        for name in ("register.keyframe_distance", "register.keyframe_angle", "register.align_to_model_every", "run.remesh_every", "run.checkpoint_every",
                      "merge.bridge"):
             if self._get(name) < 0:
                 raise ConfigError(f"config: {name} must be >= 0, got {self._get(name)}")

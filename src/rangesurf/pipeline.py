@@ -1,7 +1,8 @@
 """The online pipeline: one frame at a time through every stage (thesis Figure 3.1).
 
 ``denoise -> segment (normals, region growing) -> segment vertices -> register
-(keyframe ICP from odometry) -> merge into the global model`` (and, when
+(keyframe ICP from odometry; every few frames, the planes' fit to the model)
+-> merge into the global model`` (and, when
 configured, the pixels of no planar segment -- or all -- into a TSDF volume),
 with the
 re-meshing of changed patches and their level-of-detail order as deferrable
@@ -25,6 +26,7 @@ True
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -208,6 +210,14 @@ class Pipeline:
             keep = np.isfinite(icp_points).all(axis=-1) & np.isfinite(normals).all(axis=-1)
             icp_points, normals = icp_points[keep], normals[keep]
         tracked = self.tracker.track(icp_points, normals, projection=icp_projection, odometry=frame.pose)
+        every = self.config.register.align_to_model_every
+        if every and self.frames % every == 0 and self.model.patches:
+            # Loop closure by planes: where the frame sees patches the model placed before, their planes
+            # pull a drifted pose back (weighed by how well each is placed against the pose's covariance).
+            aligned = self.model.align(vertex_sets, tracked.T_world_sensor, tracked.covariance)
+            if aligned.applied:
+                self.tracker.correct(aligned.T_world_sensor, aligned.covariance)
+                tracked = dataclasses.replace(tracked, T_world_sensor=aligned.T_world_sensor, covariance=aligned.covariance)
         lap("register")
 
         # The pose's world covariance (drift included): the model is compared with the world.

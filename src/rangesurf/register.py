@@ -582,6 +582,24 @@ class FrameTracker:
             self._key_inliers = None
         return TrackedPose(pose.copy(), covariance.copy(), result, prior_name, result is None, step_covariance)
 
+    def correct(self, T_world_sensor: ArrayLike, covariance: ArrayLike) -> None:
+        """Move the last tracked pose to a corrected one (e.g. `rangesurf.merge.GlobalModel.align`).
+
+        The keyframe moves with it, by the same rigid correction, so that
+        the frames that follow continue from the corrected pose; both take
+        the corrected covariance.
+        """
+        if self._keyframe is None:
+            raise ValueError("correct() needs a tracked frame first")
+        pose = check_rigid_transform(T_world_sensor, "T_world_sensor")
+        covariance = np.asarray(covariance, dtype=np.float64)
+        if covariance.shape != (6, 6) or np.isnan(covariance).any():
+            raise ValueError(f"covariance must be a 6x6 matrix without NaN, got shape {covariance.shape}")
+        correction = pose @ np.linalg.inv(self.pose)
+        key_points, key_normals, key_pose, _ = self._keyframe
+        self._keyframe = (key_points, key_normals, correction @ key_pose, covariance.copy())
+        self.pose, self.covariance = pose.copy(), covariance.copy()
+
     def state(self) -> dict[str, np.ndarray]:
         """Everything `track` needs to continue, as arrays (for checkpoints; see `restore`)."""
         if self._keyframe is None:

@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+from scipy.spatial.transform import Rotation
 
 from rangesurf import simulate
 from rangesurf.io import FormatError
@@ -143,6 +144,37 @@ def arena_run():
             single = [(surface, truth.T_world_sensor) for surface in surfaces]
         model.add_frame(surfaces, truth.T_world_sensor, timestamp=frame.timestamp)
     return model, single, truths
+
+
+def _perturbed(pose, degrees, metres):
+    turn = np.eye(4)
+    turn[:3, :3] = Rotation.from_rotvec(np.radians(degrees) * np.array([0.6, 0.0, 0.8])).as_matrix()
+    turn[:3, 3] = metres
+    return turn @ pose
+
+
+def test_align_pulls_a_drifted_pose_back_to_the_model(arena_run):
+    """The first frame's planes, from a pose 0.5 deg and 4 cm off, fit the model's patches again from the true pose."""
+    model, single, _ = arena_run
+    surfaces, truth = [surface for surface, _ in single], single[0][1]
+    drifted = _perturbed(truth, 0.5, [0.03, -0.02, 0.02])
+    covariance = np.diag([np.radians(1.0) ** 2] * 3 + [0.05**2] * 3)
+    aligned = model.align(surfaces, drifted, covariance)
+    assert aligned.applied and aligned.planes >= 3
+    before = np.linalg.norm(drifted[:3, 3] - truth[:3, 3])
+    after = np.linalg.norm(aligned.T_world_sensor[:3, 3] - truth[:3, 3])
+    assert after < 0.25 * before
+    assert np.trace(aligned.covariance) < np.trace(covariance)
+    # A correction far outside the pose's covariance (10 cm against 1 cm, the patches within reach by a wide
+    # tolerance) is refused.
+    model.max_plane_distance, reach = 0.3, model.max_plane_distance
+    try:
+        shifted = _perturbed(truth, 0.0, [0.1, 0.0, 0.0])
+        refused = model.align(surfaces, shifted, np.diag([np.radians(0.1) ** 2] * 3 + [0.01**2] * 3))
+    finally:
+        model.max_plane_distance = reach
+    assert not refused.applied and refused.distance > 20 and np.array_equal(refused.T_world_sensor, shifted)
+    assert not GlobalModel().align(surfaces, truth, covariance).applied  # an empty model
 
 
 def _distance_to_scene(points):

@@ -6,8 +6,8 @@ non-planar objects (Curless & Levoy), with marching-cubes meshes
 (`rangesurf.merge.tsdf`).
 """
 
-from rangesurf.merge.model import NONPLANAR_MODES, GlobalModel, MergeStep
+from rangesurf.merge.model import NONPLANAR_MODES, GlobalModel, MergeStep, ModelAlignment
 from rangesurf.merge.planar import Observations, PlanarPatch
 from rangesurf.merge.tsdf import TSDFVolume, VoxelSample
 
-__all__ = ["GlobalModel", "MergeStep", "NONPLANAR_MODES", "PlanarPatch", "Observations", "TSDFVolume", "VoxelSample"]
+__all__ = ["GlobalModel", "MergeStep", "ModelAlignment", "NONPLANAR_MODES", "PlanarPatch", "Observations", "TSDFVolume", "VoxelSample"]

@@ -31,12 +31,20 @@ from rangesurf.io._common import FormatError, atomic_path
 from rangesurf.lod import progressive_order
 from rangesurf.merge.planar import CELL_FIELDS, Observations, PlanarPatch
 from rangesurf.mesh import Surface
+from rangesurf.register import _exp
 
 __all__ = ["GlobalModel", "MergeStep", "NONPLANAR_MODES"]
 
 NONPLANAR_MODES = ("keep", "drop")
 _FORMAT_VERSION = 1
 _UNCONSTRAINED_VARIANCE = 1e4
+# Model alignment: surfaces smaller than this are not used; points per surface; how many independent points
+# one plane's points count as; the largest squared Mahalanobis distance of a correction (chi-square, 6
+# degrees of freedom: exceeded by chance 0.3 % of the time).
+_ALIGN_MIN_VERTICES = 30
+_ALIGN_POINTS = 200
+_ALIGN_INDEPENDENT = 3.0
+_ALIGN_GATE = 20.0
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
@@ -70,6 +78,31 @@ class MergeStep:
     cells_added: int
     rejected: int
     nonplanar: int
+
+
+@dataclass(frozen=True)
+class ModelAlignment:
+    """What `GlobalModel.align` did with a frame's pose.
+
+    Parameters
+    ----------
+    T_world_sensor : (4, 4) float64
+        The corrected pose (the given one when not applied).
+    covariance : (6, 6) float64
+        Its covariance.
+    planes : int
+        The frame's planar surfaces matched to a patch.
+    distance : float
+        Squared Mahalanobis distance of the correction under the given covariance.
+    applied : bool
+        Whether the pose was corrected (at least two planes matched, the correction within the gate).
+    """
+
+    T_world_sensor: np.ndarray
+    covariance: np.ndarray
+    planes: int
+    distance: float
+    applied: bool
 
 
 class GlobalModel:
@@ -238,17 +271,102 @@ class GlobalModel:
         self.history.append(step)
         return step
 
-    def _merge(self, plane: np.ndarray, observations: Observations, frame: int, counts: dict[str, int]) -> None:
-        sigma = float(np.sqrt(np.median(observations.variance)))
-        reach = self.max_plane_distance or max(3.0 * sigma, 2.0 * self.cell_size)
+    def align(self, surfaces: list[Surface], T_world_sensor: ArrayLike, covariance: ArrayLike) -> ModelAlignment:
+        """Correct a frame's pose by its planar surfaces' fit to the model's patches (plane-based loop closure).
+
+        Each planar surface that continues a patch (the tests of `add_frame`)
+        pulls the pose so that its points lie on the patch's fitted plane;
+        the pull of a patch is weighed by how well the patch is placed (the
+        registration variance of what was fused into it, so a patch built
+        long ago by a well-placed sensor corrects a drifted pose, and one
+        built just now by the same drifting frames, which agrees with it,
+        does not) and by the points' own noise, and the correction is the
+        maximum a posteriori step with the pose's covariance as prior. A
+        correction the prior rules out (squared Mahalanobis distance above
+        20: planes matched to the wrong patches) is not applied.
+
+        Parameters
+        ----------
+        surfaces : list of Surface
+            The frame's surfaces (sensor frame), as for `add_frame`.
+        T_world_sensor : (4, 4) array
+            The tracked pose.
+        covariance : (6, 6) array
+            Its covariance (rotation vector, translation; left perturbation, world).
+
+        Returns
+        -------
+        ModelAlignment
+        """
+        pose = check_rigid_transform(T_world_sensor, "T_world_sensor")
+        prior = np.asarray(covariance, dtype=np.float64)
+        if prior.shape != (6, 6) or np.isnan(prior).any():
+            raise ValueError(f"covariance must be a 6x6 matrix without NaN, got shape {prior.shape}")
+        unchanged = ModelAlignment(pose.copy(), prior.copy(), 0, 0.0, False)
+        if not self.patches or self.cell_size is None:
+            return unchanged
+        bounded = np.where(np.isfinite(prior), prior, _UNCONSTRAINED_VARIANCE)
+        rotation, translation = pose[:3, :3], pose[:3, 3]
+        pairs = []
+        for surface in surfaces:
+            if surface.n_vertices < _ALIGN_MIN_VERTICES or not np.isfinite(surface.plane).all():
+                continue
+            points = surface.vertices.astype(np.float64) @ rotation.T + translation
+            normal = rotation @ surface.plane[:3]
+            normal = normal / np.linalg.norm(normal)
+            plane = np.r_[normal, -normal @ points.mean(axis=0)]
+            observations = _observations(surface, points, normal, bounded)
+            candidates = self._candidates(plane, points, self._reach(observations.variance))
+            if not candidates:
+                continue
+            patch = self.patches[max(candidates)[1]]
+            step = max(1, len(points) // _ALIGN_POINTS)
+            placed = float(np.median(patch.sums["registration"] / patch.sums["weight"]))
+            pairs.append((points[::step], observations.noise[::step] + observations.fit[::step] + placed, patch.world_plane()))
+        if len(pairs) < 2:
+            return ModelAlignment(pose.copy(), prior.copy(), len(pairs), 0.0, False)
+        prior_information = np.linalg.inv(bounded)
+        delta = np.zeros(6)
+        for _ in range(3):
+            # Gauss-Newton on sum_i w_i r_i(delta)^2 + delta' P delta, r_i the distance of point i moved by
+            # the left perturbation delta from its patch's plane.
+            moved_pose = _exp(delta)
+            information = prior_information.copy()
+            gradient = prior_information @ delta
+            for points, variance, patch_plane in pairs:
+                moved = points @ moved_pose[:3, :3].T + moved_pose[:3, 3]
+                normal = patch_plane[:3]
+                residual = moved @ normal + patch_plane[3]
+                jacobian = np.column_stack([np.cross(moved, normal), np.broadcast_to(normal, moved.shape)])
+                # The points of one plane share the patch's error and the frame's smoothed noise: together
+                # they count as _ALIGN_INDEPENDENT points.
+                weight = min(1.0, _ALIGN_INDEPENDENT / len(points)) / np.maximum(variance, 1e-12)
+                information += (jacobian * weight[:, None]).T @ jacobian
+                gradient += jacobian.T @ (weight * residual)
+            step = np.linalg.solve(information, -gradient)
+            delta = delta + step
+            if np.abs(step).max() < 1e-9:
+                break
+        distance = float(delta @ prior_information @ delta)
+        if distance > _ALIGN_GATE:
+            return ModelAlignment(pose.copy(), prior.copy(), len(pairs), distance, False)
+        corrected = _exp(delta) @ pose
+        return ModelAlignment(corrected, np.linalg.inv(information), len(pairs), distance, True)
+
+    def _reach(self, variance: np.ndarray) -> float:
+        """How far (metres) observations with these variances may lie from a patch's plane and still be on it."""
+        return self.max_plane_distance or max(3.0 * float(np.sqrt(np.median(variance))), 2.0 * self.cell_size)
+
+    def _candidates(self, plane: np.ndarray, points: np.ndarray, reach: float) -> list[tuple[int, int]]:
+        """(cells touched, index) of the patches a planar surface's world points continue."""
         cosine = math.cos(math.radians(self.max_normal_angle))
         candidates = []
         # The median distance from a plane is as well known from 2,000 points as from all of them.
-        sample = observations.points[:: max(1, len(observations.points) // 2000)]
+        sample = points[:: max(1, len(points) // 2000)]
         # Only patches whose box comes within touching distance: the cost per frame stays the same
         # however large the model grows.
         margin = reach + (self.bridge + 2) * self.cell_size
-        low, high = _bounding_box(observations.points)
+        low, high = _bounding_box(points)
         low, high = low - margin, high + margin
         for index, patch in enumerate(self.patches):
             if patch.normal @ plane[:3] < cosine:
@@ -258,9 +376,15 @@ class GlobalModel:
                 continue
             if np.median(patch.distance_to(sample)) > reach:
                 continue
-            touching = patch.touching(observations.points, self.bridge + 1)
+            touching = patch.touching(points, self.bridge + 1)
             if touching >= self.min_overlap:
                 candidates.append((touching, index))
+        return candidates
+
+    def _merge(self, plane: np.ndarray, observations: Observations, frame: int, counts: dict[str, int]) -> None:
+        reach = self._reach(observations.variance)
+        cosine = math.cos(math.radians(self.max_normal_angle))
+        candidates = self._candidates(plane, observations.points, reach)
         if not candidates:
             patch = PlanarPatch.from_plane(plane, observations.points, self.cell_size)
             self.patches.append(patch)
