@@ -287,10 +287,12 @@ def test_absorb_matches_numpy_reference():
     for sweeps in (1, 4):
         got = start.copy()
         got_moments = moments.copy()
-        left = region_grow._absorb_kernel(points, distance, sigma, valid, got, planes, got_moments, 3.0, 0.05, sweeps)
+        rows, cols = region_grow._free_pixels(got, valid)
+        assert np.array_equal(np.stack([rows, cols]), np.nonzero((start == 0) & valid))
+        rows, cols = region_grow._absorb_kernel(points, distance, sigma, got, planes, got_moments, rows, cols, 3.0, 0.05, sweeps)
         expected = absorb_reference(points, distance, sigma, valid, start, planes, 3.0, 0.05, sweeps)
         assert np.array_equal(got, expected)
-        assert left == np.count_nonzero(valid & (expected == 0))
+        assert np.array_equal(np.stack([rows, cols]), np.nonzero(valid & (expected == 0)))
         assert np.allclose(got_moments, moments_reference(points, expected, 4), rtol=1e-9, atol=1e-9)
 
 
@@ -301,6 +303,77 @@ def test_interior_moments_match_numpy_reference():
     got = region_grow._masked_moments(points, labels, low == high, 4)
     expected = moments_reference(points, np.where(low == high, labels, 0), 4)
     assert np.allclose(got, expected, rtol=1e-9, atol=1e-9)
+
+
+def test_interior_kernel_matches_minimum_and_maximum_filters():
+    points, labels = noisy_scene(12)
+    # Scattered one-pixel holes and a label (3) that the lookup merges into another (2).
+    labels[np.random.default_rng(13).random(labels.shape) < 0.01] = 0
+    lookup = np.array([0, 1, 2, 2], np.int32)
+    mapped, interior, outline = region_grow._interior_kernel(points, labels, lookup, 4)
+    assert np.array_equal(mapped, lookup[labels])
+    low = ndimage.minimum_filter(mapped, size=5, mode="nearest")
+    high = ndimage.maximum_filter(mapped, size=5, mode="nearest")
+    assert np.array_equal(interior, (low == high) & (mapped > 0))
+    assert 0 < interior.sum() < (mapped > 0).sum()
+    assert np.allclose(outline, moments_reference(points, np.where(interior, 0, mapped), 4), rtol=1e-9, atol=1e-9)
+
+
+def test_adjacency_matches_numpy_reference():
+    _, labels = noisy_scene(14)
+    labels[50:53, 100:140] = 4  # a thin strip inside segment 2
+    labels[np.random.default_rng(15).random(labels.shape) < 0.02] = 0
+    pairs, shapes = region_grow._adjacency(labels, 5)
+    expected = set()
+    for a, b in ((labels[:, :-1], labels[:, 1:]), (labels[:, :-2], labels[:, 2:]), (labels[:-1], labels[1:]), (labels[:-2], labels[2:])):
+        both = (a > 0) & (b > 0) & (a != b)
+        expected |= {(min(x, y), max(x, y)) for x, y in zip(a[both], b[both])}
+    assert [tuple(pair) for pair in pairs] == sorted(expected)
+    rows, cols = np.indices(labels.shape)
+    for label in range(1, 5):
+        r, c = rows[labels == label].astype(float), cols[labels == label].astype(float)
+        assert np.array_equal(shapes[label], [r.size, r.sum(), c.sum(), (r * r).sum(), (r * c).sum(), (c * c).sum()])
+    assert not shapes[0].any()
+
+
+def test_merged_pairs_and_sums_follow_the_lookup():
+    pairs = np.array([[1, 2], [1, 3], [2, 3], [3, 4]], np.int64)
+    lookup = np.array([0, 1, 1, 3, 4], np.int32)
+    assert region_grow._merged_pairs(pairs, lookup).tolist() == [[1, 3], [3, 4]]
+    rows = np.arange(10.0).reshape(5, 2)
+    summed = np.zeros_like(rows)
+    np.add.at(summed, lookup, rows)
+    assert np.array_equal(region_grow._sum_into(rows, lookup), summed)
+
+
+def test_seed_order_matches_box_filter_reference():
+    import cv2
+
+    points, _ = noisy_scene(16)
+    normals = estimate_normals(points, projection=SR3000.projection, range_sigma=0.003)
+    normals[40:45, 30:90] = np.nan
+    min_coherence = np.cos(np.radians(10))
+    distance, valid, state, order = region_grow._growing_grid(points, normals, min_coherence)
+    expected_valid = np.isfinite(points).all(axis=2)
+    assert np.array_equal(valid, expected_valid)
+    assert np.allclose(distance[valid], np.linalg.norm(points[valid].astype(np.float64), axis=1), rtol=1e-6)
+    assert np.isnan(distance[~valid]).all()
+    growable = valid & np.isfinite(normals).all(axis=2)
+    framed = state.reshape(SR3000.shape[0] + 2, SR3000.shape[1] + 2)
+    assert np.array_equal(framed[1:-1, 1:-1] == 0, growable) and (framed[1:-1, 1:-1] != 0).sum() == (~growable).sum()
+    assert (framed[[0, -1]] == -1).all() and (framed[:, [0, -1]] == -1).all()
+    # Coherence from OpenCV's box filters, as float32; the order is by 65536 coherence bins, then raster order.
+    total = cv2.boxFilter(np.where(growable[..., None], normals, 0).astype(np.float32), -1, (5, 5), normalize=False,
+                          borderType=cv2.BORDER_CONSTANT)
+    count = cv2.boxFilter(growable.astype(np.float32), -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        coherence = np.sqrt((total.astype(np.float32) ** 2).sum(axis=2, dtype=np.float32)) / count
+    seeds = growable & (count > 0) & (coherence >= min_coherence)
+    keys = np.minimum(((1.0 - np.minimum(coherence[seeds], 1.0)) * 65535).astype(np.int64), 65535)
+    rows, cols = np.nonzero(seeds)
+    expected = ((rows + 1) * (SR3000.shape[1] + 2) + cols + 1)[np.argsort(keys, kind="stable")]
+    assert 0 < len(order) < growable.sum()
+    assert np.array_equal(order, expected)
 
 
 def test_label_moments_match_numpy_reference():

@@ -73,6 +73,12 @@ def segment_planes(
         decimate = max(1, round(math.sqrt(height * width / _GROWING_PIXELS)))
     if isinstance(decimate, bool) or not isinstance(decimate, (int, np.integer)) or decimate < 1:
         raise ValueError(f"decimate must be an integer >= 1, got {decimate!r}")
+    if decimate == 1:
+        # The normal estimator refuses Inf points and checks the sigma where there is a return, in its
+        # own passes; growing finds the ranges in its first one.
+        sigma = np.ascontiguousarray(np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width)))
+        normals = estimate_normals(points, projection=projection, range_sigma=sigma)
+        return _grow(points, normals, sigma)
     distance, valid, n_infinite = _point_ranges(points)
     if n_infinite:
         check_point_grid(points)  # raises, in the shared wording
@@ -80,9 +86,6 @@ def segment_planes(
         np.where(valid, distance, np.nan), np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width))
     )
     # The stages' own defaults, on inputs checked once here.
-    if decimate == 1:
-        normals = estimate_normals(points, projection=projection, range_sigma=sigma)
-        return _grow(points, normals, distance, valid, sigma)
     coarse_points = np.ascontiguousarray(points[::decimate, ::decimate])
     coarse_sigma = np.ascontiguousarray(sigma[::decimate, ::decimate])
     coarse_projection = None
@@ -92,9 +95,7 @@ def segment_planes(
             fx=projection.fx / decimate, fy=projection.fy / decimate, cx=projection.cx / decimate, cy=projection.cy / decimate
         )
     normals = estimate_normals(coarse_points, projection=coarse_projection, range_sigma=coarse_sigma)
-    coarse_distance = np.ascontiguousarray(distance[::decimate, ::decimate])
-    coarse_valid = np.ascontiguousarray(valid[::decimate, ::decimate])
-    coarse = _grow(coarse_points, normals, coarse_distance, coarse_valid, coarse_sigma)
+    coarse = _grow(coarse_points, normals, coarse_sigma)
     return _refine_upsampled(points, distance, valid, sigma, coarse, decimate)
 
 

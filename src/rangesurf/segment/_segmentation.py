@@ -4,11 +4,12 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from rangesurf._planefit import plane_rms, planes_from_moments
 
-__all__ = ["Segmentation"]
+__all__ = ["Segmentation", "relabel"]
 
 
 @dataclass(frozen=True)
@@ -44,14 +45,21 @@ class Segmentation:
 
     @classmethod
     def from_moments(
-        cls, labels: np.ndarray, moments: np.ndarray, unlabelled: int, fit_moments: np.ndarray | None = None
+        cls,
+        labels: np.ndarray,
+        moments: np.ndarray,
+        unlabelled: int,
+        fit_moments: np.ndarray | None = None,
+        lookup: np.ndarray | None = None,
     ) -> Segmentation:
         """Build from per-segment point moments ``(K + 1, 10)`` (n, sums of x, y, z, and of their products).
 
         Segments are renumbered by size, largest first; empty ones are dropped.
         Planes come from ``fit_moments`` when given (the moments of the points
         to fit, e.g. a segment's interior); residuals are always those of all
-        the segment's points.
+        the segment's points. A pixel labelled k belongs to segment
+        ``lookup[k]`` when ``lookup`` is given (a merge: the label image is
+        then mapped once, not twice).
         """
         counts = moments[1:, 0]
         keep = np.flatnonzero(counts > 0)
@@ -65,4 +73,19 @@ class Segmentation:
             # The residual is every point's, about the plane fitted to some of them.
             residuals[1:] = plane_rms(moments[keep + 1], planes[1:])
         sizes = np.concatenate([[unlabelled], counts[keep]]).astype(np.int64)
-        return cls(labels=renumber[labels], planes=planes, residuals=residuals, sizes=sizes)
+        labels = relabel(labels, renumber if lookup is None else renumber[lookup])
+        return cls(labels=labels, planes=planes, residuals=residuals, sizes=sizes)
+
+
+def relabel(labels: np.ndarray, lookup: np.ndarray) -> np.ndarray:
+    """``lookup[labels]`` as int32, for label images (a compiled loop: NumPy's fancy indexing is several times slower)."""
+    labels = np.ascontiguousarray(labels)
+    return _relabel_kernel(labels.reshape(-1), np.ascontiguousarray(lookup, dtype=np.int32)).reshape(labels.shape)
+
+
+@numba.njit(cache=True, nogil=True)
+def _relabel_kernel(labels, lookup):  # pragma: no cover - compiled
+    relabelled = np.empty(labels.size, np.int32)
+    for k in range(labels.size):
+        relabelled[k] = lookup[labels[k]]
+    return relabelled

@@ -14,14 +14,20 @@ The plane is refitted by total least squares from running sums of the
 members' coordinates (Poppinga's incremental fit: O(1) per added point)
 whenever the region has grown by a quarter since the last fit, so it follows
 the data rather than the seed's noisy normal.  Regions smaller than
-``min_size`` pixels are dissolved; their pixels remain free, and only the
-failed seed never seeds again.
+``min_size`` pixels are dissolved; their pixels remain free to join another
+region, but none of them seeds one.
 
 Then (1) every region absorbs the free pixels around it that fit its final
 plane (the pixels at its outline whose normals were spoiled by the depth
 edge), and (2) neighbouring regions whose points fit one common plane within
 the noise are merged (an edge or a noise line that split one wall).
 Coplanar regions that do not touch stay separate segments.
+
+The clean-up after growing works on per-segment sums wherever it can: one
+pass over the labels gives the neighbouring segments and every segment's
+shape, so merging and the bevel test only add up rows of sums; the interior
+fit takes the few outline and outlier pixels off a segment's moments instead
+of summing the rest again.
 
 References
 ----------
@@ -36,7 +42,6 @@ from __future__ import annotations
 import math
 from typing import Any
 
-import cv2
 import numba
 import numpy as np
 from numpy.typing import ArrayLike
@@ -44,7 +49,7 @@ from numpy.typing import ArrayLike
 from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf._grid import ranges
 from rangesurf._planefit import add_point, plane_eigen, planes_from_moments
-from rangesurf.segment._segmentation import Segmentation
+from rangesurf.segment._segmentation import Segmentation, relabel
 
 __all__ = ["grow_regions", "refine_upsampled"]
 
@@ -166,14 +171,12 @@ def grow_regions(
 
     distance, valid = ranges(points)
     sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
-    return _grow(points, normals, distance, valid, sigma, float(distance_sigmas), float(max_angle), float(depth_jump), int(min_size), merge)
+    return _grow(points, normals, sigma, float(distance_sigmas), float(max_angle), float(depth_jump), int(min_size), merge)
 
 
 def _grow(
     points: np.ndarray,
     normals: np.ndarray,
-    distance: np.ndarray,
-    valid: np.ndarray,
     sigma: np.ndarray,
     distance_sigmas: float = _DISTANCE_SIGMAS,
     max_angle: float = _MAX_ANGLE,
@@ -181,50 +184,52 @@ def _grow(
     min_size: int | None = None,
     merge: bool = True,
 ) -> Segmentation:
-    """`grow_regions` on checked inputs: float32 grids, ``distance`` and ``valid`` from `ranges`, ``sigma`` (H, W).
+    """`grow_regions` on checked inputs: C-contiguous float32 grids and ``sigma`` (H, W) float64.
 
-    ``sigma`` is read only where ``valid``.
+    ``sigma`` is read only where a point is valid.
     """
     if min_size is None:
-        min_size = default_min_size(*valid.shape)
-    growable = _with_normal(valid, normals)
-    order = _seed_order(normals, growable, math.cos(math.radians(max_angle / 2)))
+        min_size = default_min_size(*sigma.shape)
+    cos_max_angle = math.cos(math.radians(max_angle))
+    distance, valid, state, order = _growing_grid(points, normals, math.cos(math.radians(max_angle / 2)))
     labels, moments = _grow_kernel(
-        points,
-        normals,
-        distance,
-        sigma,
-        growable,
-        order,
-        distance_sigmas,
-        math.cos(math.radians(max_angle)),
-        depth_jump,
-        min_size,
-        float(_FIRST_FIT),
+        points, normals, distance, sigma, state, order, distance_sigmas, cos_max_angle, depth_jump, min_size, float(_FIRST_FIT)
     )
     planes, _ = planes_from_moments(moments)
-    _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_jump)
+    free_rows, free_cols = _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, depth_jump)
     planes, _ = planes_from_moments(moments)
     # Planes are fitted to what growing found (the core), not to the outline pixels absorbed below.
     core, core_moments = labels.copy(), moments.copy()
-    unlabelled = _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, distance_sigmas, depth_jump, _ABSORB_SWEEPS)
+    free_rows, free_cols = _absorb_kernel(
+        points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, _ABSORB_SWEEPS
+    )
+    # Merging and the bevel test need only per-segment sums: one pass over the labels gives them for the
+    # segments as grown, and a merge just adds up the rows of the segments it joins.
+    pairs, shapes = _adjacency(labels, len(moments))
+    lookup = np.arange(len(moments), dtype=np.int32)
     if merge:
-        roots, moments = _merge_coplanar(labels, moments, math.cos(math.radians(max_angle)))
-        labels, core = roots[labels], roots[core]
-        merged_core = np.zeros_like(core_moments)
-        np.add.at(merged_core, roots, core_moments)
-        core_moments = merged_core
-    bevels = _bevels(labels, moments)
+        lookup, moments = _merge_coplanar(pairs, moments, cos_max_angle)
+        core_moments, shapes = _sum_into(core_moments, lookup), _sum_into(shapes, lookup)
+        pairs = _merged_pairs(pairs, lookup)
+    planes, _ = planes_from_moments(moments)
+    bevels = _bevel_kernel(pairs, shapes, planes, _BEVEL_WIDTH, _BEVEL_SLACK)
     if bevels.size:
-        dissolved = np.zeros(len(moments), bool)
+        # A bevel is dissolved: its pixels leave every segment, its sums go.
+        dissolved = np.zeros(len(lookup), bool)
         dissolved[bevels] = True
-        labels[dissolved[labels]] = 0
-        core[dissolved[core]] = 0
+        lookup[dissolved[lookup]] = 0
         moments[bevels] = 0
         core_moments[bevels] = 0
+    fit = _interior_moments(points, core, lookup, core_moments)
+    if bevels.size:
+        # The bevels' pixels are free again, for their neighbours to absorb.
+        labels, lookup = relabel(labels, lookup), None
         planes, _ = planes_from_moments(moments)
-        unlabelled = _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, distance_sigmas, depth_jump, _ABSORB_SWEEPS)
-    return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, core, core_moments))
+        free_rows, free_cols = _free_pixels(labels, valid)
+        free_rows, free_cols = _absorb_kernel(
+            points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, _ABSORB_SWEEPS
+        )
+    return Segmentation.from_moments(labels, moments, len(free_rows), fit, lookup)
 
 
 def refine_upsampled(
@@ -286,11 +291,15 @@ def _refine_upsampled(
     """`refine_upsampled` on checked inputs (as for `_grow`)."""
     planes = np.ascontiguousarray(coarse.planes, dtype=np.float64)
     labels, moments = _upsampled_labels(points, valid, sigma, coarse.labels, factor, planes, distance_sigmas)
-    _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_jump)
+    free_rows, free_cols = _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, depth_jump)
     core, core_moments = labels.copy(), moments.copy()
     planes, _ = planes_from_moments(moments)
-    unlabelled = _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, distance_sigmas, depth_jump, _ABSORB_SWEEPS + factor)
-    return Segmentation.from_moments(labels, moments, unlabelled, _interior_moments(points, core, core_moments))
+    sweeps = _ABSORB_SWEEPS + factor
+    free_rows, free_cols = _absorb_kernel(
+        points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, sweeps
+    )
+    identity = np.arange(len(moments), dtype=np.int32)
+    return Segmentation.from_moments(labels, moments, len(free_rows), _interior_moments(points, core, identity, core_moments))
 
 
 # --------------------------------------------------------------------------
@@ -310,28 +319,15 @@ def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray]:
     return points, normals
 
 # --------------------------------------------------------------------------
-# Seeds, planes and merging.
+# Merging, bevels and interiors (on per-segment sums where possible).
 # --------------------------------------------------------------------------
 
 
-def _seed_order(normals: np.ndarray, growable: np.ndarray, min_coherence: float) -> np.ndarray:
-    """Flat indices of the pixels that may seed a region, smoothest first.
-
-    Smoothness is the length of the mean unit normal over 5x5 (1 on a
-    plane). Pixels below ``min_coherence`` (on a crease, which smoothing
-    rounds into a bevel, or at an edge) never seed: a region started there
-    would be a sliver between two faces. They can still join a region.
-    """
-    filled = _zero_where_not(normals, growable)
-    total = cv2.boxFilter(filled, -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    count = cv2.boxFilter(growable.astype(np.float32), -1, (5, 5), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    return _seeds_by_coherence(total, count, growable, min_coherence)
-
-
-def _merge_coplanar(labels: np.ndarray, moments: np.ndarray, cos_max_angle: float) -> tuple[np.ndarray, np.ndarray]:
+def _merge_coplanar(pairs: np.ndarray, moments: np.ndarray, cos_max_angle: float) -> tuple[np.ndarray, np.ndarray]:
     """Merge neighbouring segments that one plane fits as well as their own two (union-find, best pairs first).
 
-    Returns the label each label merges into, and the merged moments.
+    ``pairs`` are the neighbouring segments (`_adjacency`). Returns the label
+    each label merges into, and the merged moments.
 
     The test is on the measured residuals, not the sensor model: merging may
     raise the residual variance by at most ``_MERGE_VARIANCE_GAIN`` over the
@@ -339,108 +335,61 @@ def _merge_coplanar(labels: np.ndarray, moments: np.ndarray, cos_max_angle: floa
     panel set back from its wall, parallel but a few noise sigmas behind,
     does not.
     """
-    pairs = _neighbour_pairs(labels)
     if len(pairs) == 0:
         return np.arange(len(moments), dtype=np.int32), moments
     planes, rms = planes_from_moments(moments)
-    variance = np.nan_to_num(rms) ** 2
-    cosine = np.abs(np.einsum("kj,kj->k", planes[pairs[:, 0], :3], planes[pairs[:, 1], :3]))
-    # Best pairs first (ties by label), as far as they are within the angle.
-    order = np.lexsort((pairs[:, 1], pairs[:, 0], -cosine))
-    order = order[np.nan_to_num(cosine[order]) >= cos_max_angle]
-    return _merge_kernel(np.ascontiguousarray(pairs[order]), moments, variance, _MERGE_VARIANCE_GAIN)
+    return _merge_kernel(pairs, moments, planes, rms, cos_max_angle, _MERGE_VARIANCE_GAIN)
 
 
-def _bevels(labels: np.ndarray, moments: np.ndarray) -> np.ndarray:
-    """Labels of slivers that are the rounded crease between two other segments.
-
-    Smoothing rounds a crease into a narrow band whose normals turn from one
-    face's to the other's; growing can make that band a segment of its own.
-    Such a segment is thin (under ``_BEVEL_WIDTH`` pixels across, from the
-    second moments of its pixel coordinates) and its plane lies between two
-    of its neighbours': the angles from each neighbour to it add up to the
-    angle between the neighbours (within ``_BEVEL_SLACK`` degrees), and
-    neither is small. A thin face that is not between two others (a box side
-    seen edge-on, a strip cut off by the image border) stays.
-    """
-    pixel = _pixel_moments(labels, len(moments))
-    count = pixel[:, 0]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        mean_r, mean_c = pixel[:, 1] / count, pixel[:, 2] / count
-        rr = pixel[:, 3] / count - mean_r**2
-        rc = pixel[:, 4] / count - mean_r * mean_c
-        cc = pixel[:, 5] / count - mean_c**2
-    # Smaller eigenvalue of the 2x2 pixel covariance; a band of width w has variance w^2 / 12 across.
-    minor = (rr + cc) / 2 - np.sqrt(((rr - cc) / 2) ** 2 + rc**2)
-    thin = np.flatnonzero((count > 0) & (np.sqrt(12 * np.maximum(minor, 0)) < _BEVEL_WIDTH))
-    thin = thin[thin > 0]
-    if thin.size == 0:
-        return thin
-    pairs = _neighbour_pairs(labels)
-    planes, _ = planes_from_moments(moments)
-    normals = planes[:, :3]
-    bevels = []
-    for sliver in thin:
-        around = np.concatenate([pairs[pairs[:, 0] == sliver, 1], pairs[pairs[:, 1] == sliver, 0]])
-        around = around[np.isfinite(normals[around]).all(axis=1)]
-        if len(around) < 2 or not np.isfinite(normals[sliver]).all():
-            continue
-        to_sliver = np.degrees(np.arccos(np.clip(np.abs(normals[around] @ normals[sliver]), 0.0, 1.0)))
-        between = np.degrees(np.arccos(np.clip(np.abs(normals[around] @ normals[around].T), 0.0, 1.0)))
-        # Pairs (a, b) of neighbours with the sliver's plane between theirs, neither close to it.
-        sums = to_sliver[:, None] + to_sliver[None, :]
-        apart = (to_sliver[:, None] > _BEVEL_SLACK) & (to_sliver[None, :] > _BEVEL_SLACK)
-        if (apart & (sums <= between + _BEVEL_SLACK) & ~np.eye(len(around), dtype=bool)).any():
-            bevels.append(sliver)
-    return np.asarray(bevels, dtype=np.int64)
-
-
-def _interior_moments(points: np.ndarray, labels: np.ndarray, moments: np.ndarray) -> np.ndarray:
+def _interior_moments(points: np.ndarray, labels: np.ndarray, lookup: np.ndarray, moments: np.ndarray) -> np.ndarray:
     """Moments of each segment's interior (2 pixels in from its outline; the image border does not count).
 
-    The outline is where a segment meets another at a crease, and smoothing
-    rounds creases: fitting the plane to the interior keeps that bevel out of
-    it. Segments with too small an interior keep all their points.
+    ``labels`` are mapped through ``lookup`` first; ``moments`` are those of
+    each segment's pixels. The outline is where a segment meets another at a
+    crease, and smoothing rounds creases: fitting the plane to the interior
+    keeps that bevel out of it. Segments with too small an interior keep all
+    their points. Outline and outliers are the few pixels: their moments are
+    summed and taken off, rather than all the rest summed again.
     """
-    as_float = labels.astype(np.float32)  # exact for any realistic segment count (< 2**24)
-    kernel = np.ones((2 * _INTERIOR_MARGIN + 1,) * 2, np.uint8)
-    low = cv2.erode(as_float, kernel, borderType=cv2.BORDER_REPLICATE)
-    high = cv2.dilate(as_float, kernel, borderType=cv2.BORDER_REPLICATE)
-    # Interior pixels: the label is both the minimum and the maximum of the window.
-    fit = _masked_moments(points, labels, low == high, len(moments))
+    labels, interior, outline = _interior_kernel(points, labels, lookup, len(moments))
+    fit = moments - outline
     # Segments with too small an interior are fitted whole.
     whole = fit[:, 0] < np.maximum(_MIN_INTERIOR, _MIN_INTERIOR_FRACTION * moments[:, 0])
     fit[whole] = moments[whole]
     # One trimming pass: points more than _TRIM_RMS residual RMS off the plane (a rounded crease,
     # a stray pixel) leave the fit.
     planes, rms = planes_from_moments(fit)
-    limits = _TRIM_RMS * np.nan_to_num(rms, nan=np.inf)
-    refit = _trimmed_kernel(points, labels, low, high, whole, planes, limits, len(moments))
+    refit = fit - _outlier_moments(points, labels, interior, whole, planes, rms)
     keep = refit[:, 0] >= np.maximum(3, 0.5 * fit[:, 0])
     fit[keep] = refit[keep]
     return fit
 
 
-def _neighbour_pairs(labels: np.ndarray) -> np.ndarray:
-    """Distinct (a, b), a < b, of segments within two pixels of each other along a row or column."""
-    codes = _neighbour_codes(labels, int(labels.max(initial=0)) + 1)
-    count = int(labels.max(initial=0)) + 1
-    codes = np.unique(codes)
-    return np.stack([codes // count, codes % count], axis=1).astype(np.int64)
-
-
 @numba.njit(**_JIT)
-def _merge_kernel(pairs, moments, variance, gain):  # pragma: no cover - compiled
-    """Union-find over ``pairs`` in their order: merge when one plane fits both within ``gain`` of their pooled variance.
+def _merge_kernel(pairs, moments, planes, rms, cos_max_angle, gain):  # pragma: no cover - compiled
+    """Union-find over ``pairs`` within ``cos_max_angle``, most parallel first.
 
+    Two segments merge when one plane fits both within ``gain`` of their
+    pooled variance. ``planes`` and ``rms`` are the segments' own fits
+    (`planes_from_moments`; a segment without a plane counts as variance 0).
     Returns the root label of every label and the merged moments.
     """
+    n_pairs = pairs.shape[0]
+    cosine = np.empty(n_pairs)
+    for k in range(n_pairs):
+        a = pairs[k, 0]
+        b = pairs[k, 1]
+        cosine[k] = abs(planes[a, 0] * planes[b, 0] + planes[a, 1] * planes[b, 1] + planes[a, 2] * planes[b, 2])
+    # NaN (a segment without a plane) fails the angle test too.
+    candidates = np.flatnonzero(cosine >= cos_max_angle)
+    # A stable sort: equally parallel pairs keep their order by label.
+    order = candidates[np.argsort(-cosine[candidates], kind="mergesort")]
     count = moments.shape[0]
     parent = np.arange(count)
     merged = moments.copy()
-    variance = variance.copy()
+    variance = np.where(rms == rms, rms, 0.0) ** 2
     normal = np.empty(3)
-    for k in range(pairs.shape[0]):
+    for k in order:
         ra = pairs[k, 0]
         while parent[ra] != ra:
             parent[ra] = parent[parent[ra]]
@@ -471,15 +420,87 @@ def _merge_kernel(pairs, moments, variance, gain):  # pragma: no cover - compile
 
 
 @numba.njit(**_JIT)
-def _neighbour_codes(labels, count):  # pragma: no cover - compiled
-    """``a * count + b`` for every pixel pair (a < b, both labelled) one or two apart along a row or column."""
+def _sum_into(rows, lookup):  # pragma: no cover - compiled
+    """Rows summed into the row ``lookup`` sends them to (`np.add.at` with ``lookup`` as the index)."""
+    summed = np.zeros_like(rows)
+    for k in range(rows.shape[0]):
+        for column in range(rows.shape[1]):
+            summed[lookup[k], column] += rows[k, column]
+    return summed
+
+
+@numba.njit(**_JIT)
+def _unique_pairs(codes, count):  # pragma: no cover - compiled
+    """Sorted distinct pairs (a, b) of the codes ``a * count + b``."""
+    codes = np.unique(codes)
+    pairs = np.empty((codes.size, 2), np.int64)
+    for k in range(codes.size):
+        pairs[k, 0] = codes[k] // count
+        pairs[k, 1] = codes[k] % count
+    return pairs
+
+
+@numba.njit(**_JIT)
+def _merged_pairs(pairs, lookup):  # pragma: no cover - compiled
+    """The neighbouring segments after the merge that sends label k to ``lookup[k]``."""
+    count = lookup.size
+    codes = np.empty(pairs.shape[0], np.int64)
+    found = 0
+    for k in range(pairs.shape[0]):
+        a = lookup[pairs[k, 0]]
+        b = lookup[pairs[k, 1]]
+        if a != b:
+            codes[found] = min(a, b) * count + max(a, b)
+            found += 1
+    return _unique_pairs(codes[:found], count)
+
+
+@numba.njit(**_JIT)
+def _adjacency(labels, count):  # pragma: no cover - compiled
+    """Neighbouring segments and the shape of every segment, in one pass over the labels.
+
+    Returns (P, 2) int64: the distinct pairs (a, b), a < b, sorted, of
+    segments within two pixels of each other along a row or column; and
+    (count, 6) float64 per label: pixel count and sums of row, column,
+    row^2, row*column, column^2 (row 0: unlabelled, left empty).
+    """
     height, width = labels.shape
+    shapes = np.zeros((count, 6))
+    # A border repeats its pair pixel after pixel: only a change of pair is written.
     codes = np.empty(4 * height * width, np.int64)
     found = 0
+    last = -1
+    # The last two columns are never alike: their pixels ahead along the row are missing.
+    alike = np.zeros(width, np.bool_)
     for i in range(height):
+        # Each run of one label along the row adds its pixel coordinates' sums in closed form.
+        start = 0
+        for j in range(1, width + 1):
+            if j < width and labels[i, j] == labels[i, start]:
+                continue
+            a = labels[i, start]
+            if a > 0:
+                n = j - start
+                columns = (start + j - 1) * n / 2
+                squares = _square_sum(j - 1) - _square_sum(start - 1)
+                shapes[a, 0] += n
+                shapes[a, 1] += i * n
+                shapes[a, 2] += columns
+                shapes[a, 3] += i * i * n
+                shapes[a, 4] += i * columns
+                shapes[a, 5] += squares
+            start = j
+        # Inside a segment (the common case) all four pixels ahead hold its label; which of the row's pixels
+        # do is found first, in a loop the compiler vectorises.
+        if i + 2 < height:
+            for j in range(width - 2):
+                a = labels[i, j]
+                alike[j] = (labels[i, j + 1] == a) & (labels[i, j + 2] == a) & (labels[i + 1, j] == a) & (labels[i + 2, j] == a)
+        else:
+            alike[:] = False
         for j in range(width):
             a = labels[i, j]
-            if a <= 0:
+            if alike[j] or a <= 0:
                 continue
             for di, dj in ((0, 1), (0, 2), (1, 0), (2, 0)):
                 qi, qj = i + di, j + dj
@@ -488,68 +509,552 @@ def _neighbour_codes(labels, count):  # pragma: no cover - compiled
                 b = labels[qi, qj]
                 if b <= 0 or b == a:
                     continue
-                codes[found] = min(a, b) * count + max(a, b)
-                found += 1
-    return codes[:found]
+                code = min(a, b) * count + max(a, b)
+                if code != last:
+                    codes[found] = code
+                    found += 1
+                    last = code
+    return _unique_pairs(codes[:found], count), shapes
+
+
+@numba.njit(**_JIT, inline="always")
+def _square_sum(m):  # pragma: no cover - compiled
+    """0^2 + 1^2 + ... + m^2 (0 for m < 1), as a float (exact below 2^53)."""
+    return max(m, 0) * (m + 1.0) * (2.0 * m + 1.0) / 6.0
+
+
+@numba.njit(**_JIT)
+def _bevel_kernel(pairs, shapes, planes, max_width, slack):  # pragma: no cover - compiled
+    """Labels of slivers that are the rounded crease between two other segments.
+
+    Smoothing rounds a crease into a narrow band whose normals turn from one
+    face's to the other's; growing can make that band a segment of its own.
+    Such a segment is thin (under ``max_width`` pixels across, from the
+    second moments of its pixel coordinates, ``shapes`` of `_adjacency`) and
+    its plane lies between two of its neighbours': the angles from each
+    neighbour to it add up to the angle between the neighbours (within
+    ``slack`` degrees), and neither is small. A thin face that is not
+    between two others (a box side seen edge-on, a strip cut off by the
+    image border) stays.
+    """
+    count = shapes.shape[0]
+    bevels = np.empty(count, np.int64)
+    n_bevels = 0
+    around = np.empty(count, np.int64)
+    to_sliver = np.empty(count)
+    for sliver in range(1, count):
+        n = shapes[sliver, 0]
+        if not n > 0 or not np.isfinite(planes[sliver, 0]):
+            continue
+        mean_r = shapes[sliver, 1] / n
+        mean_c = shapes[sliver, 2] / n
+        rr = shapes[sliver, 3] / n - mean_r**2
+        rc = shapes[sliver, 4] / n - mean_r * mean_c
+        cc = shapes[sliver, 5] / n - mean_c**2
+        # Smaller eigenvalue of the 2x2 pixel covariance; a band of width w has variance w^2 / 12 across.
+        minor = (rr + cc) / 2 - math.sqrt(((rr - cc) / 2) ** 2 + rc**2)
+        if not math.sqrt(12 * max(minor, 0.0)) < max_width:
+            continue
+        n_around = 0
+        for k in range(pairs.shape[0]):
+            other = pairs[k, 1] if pairs[k, 0] == sliver else (pairs[k, 0] if pairs[k, 1] == sliver else -1)
+            if other >= 0 and np.isfinite(planes[other, 0]):
+                around[n_around] = other
+                n_around += 1
+        for k in range(n_around):
+            to_sliver[k] = _angle_between(planes, around[k], sliver)
+        # A pair of neighbours with the sliver's plane between theirs, neither close to it.
+        between = False
+        for a in range(n_around):
+            for b in range(n_around):
+                if a != b and to_sliver[a] > slack and to_sliver[b] > slack:
+                    between |= to_sliver[a] + to_sliver[b] <= _angle_between(planes, around[a], around[b]) + slack
+        if between:
+            bevels[n_bevels] = sliver
+            n_bevels += 1
+    return bevels[:n_bevels]
+
+
+@numba.njit(**_JIT, inline="always")
+def _angle_between(planes, a, b):  # pragma: no cover - compiled
+    """Angle (degrees, 0-90) between the planes ``a`` and ``b``."""
+    cosine = abs(planes[a, 0] * planes[b, 0] + planes[a, 1] * planes[b, 1] + planes[a, 2] * planes[b, 2])
+    return math.degrees(math.acos(min(max(cosine, 0.0), 1.0)))
+
+
+@numba.njit(**_JIT)
+def _interior_kernel(points, labels, lookup, n_labels):  # pragma: no cover - compiled
+    """``lookup[labels]``, its interior, and the point moments (n_labels, 10) of each label's pixels outside it.
+
+    A pixel is interior when its label (> 0) fills the window of
+    ``_INTERIOR_MARGIN`` pixels around it, clipped by the image border (as a
+    minimum and a maximum filter with the border replicated agree), that
+    is, when no two neighbouring pixels in the window differ. Such pairs are
+    found once, and each spoils the windows it lies in: a box filter (an OR)
+    along the rows and then down the columns, in loops the compiler
+    vectorises.
+    """
+    height, width = labels.shape
+    margin = _INTERIOR_MARGIN
+    mapped = np.empty((height, width), np.int32)
+    for i in range(height):
+        for j in range(width):
+            mapped[i, j] = lookup[labels[i, j]]
+    # Differing pairs across columns j, j + 1 and across rows i, i + 1, at column j + margin (the margin
+    # columns each side stay False).
+    across = np.zeros((height, width + 2 * margin), np.bool_)
+    down = np.zeros((height, width + 2 * margin), np.bool_)
+    for i in range(height):
+        for j in range(width - 1):
+            across[i, j + margin] = mapped[i, j] != mapped[i, j + 1]
+        if i + 1 < height:
+            for j in range(width):
+                down[i, j + margin] = mapped[i, j] != mapped[i + 1, j]
+    # Pairs within a window's columns (j - margin .. j + margin), at row i + margin (the margin rows stay False).
+    across_near = np.zeros((height + 2 * margin, width), np.bool_)
+    down_near = np.zeros((height + 2 * margin, width), np.bool_)
+    for i in range(height):
+        for j in range(width):
+            near_across = False
+            for offset in range(2 * margin):
+                near_across |= across[i, j + offset]
+            near_down = False
+            for offset in range(2 * margin + 1):
+                near_down |= down[i, j + offset]
+            across_near[i + margin, j] = near_across
+            down_near[i + margin, j] = near_down
+    # ... and within its rows (i - margin .. i + margin).
+    interior = np.empty((height, width), np.bool_)
+    for i in range(height):
+        for j in range(width):
+            spoiled = False
+            for offset in range(2 * margin + 1):
+                spoiled |= across_near[i + offset, j]
+            for offset in range(2 * margin):
+                spoiled |= down_near[i + offset, j]
+            interior[i, j] = (mapped[i, j] > 0) & ~spoiled
+    outline = np.zeros((n_labels, 10))
+    current = 0
+    run = _EMPTY_RUN
+    for i in range(height):
+        for j in range(width):
+            label = mapped[i, j]
+            if label <= 0 or interior[i, j]:
+                continue
+            if label != current:
+                _run_flush(outline, current, run)
+                current = label
+                run = _EMPTY_RUN
+            run = _run_add(run, np.float64(points[i, j, 0]), np.float64(points[i, j, 1]), np.float64(points[i, j, 2]))
+    _run_flush(outline, current, run)
+    return mapped, interior, outline
+
+
+@numba.njit(**_JIT)
+def _outlier_moments(points, labels, interior, whole, planes, rms):  # pragma: no cover - compiled
+    """Moments of the fitted pixels (interior, or all of a ``whole`` label) more than ``_TRIM_RMS`` ``rms`` off their plane.
+
+    A label without a plane (NaN) has all its fitted pixels off it.
+    """
+    height, width = labels.shape
+    limits = np.empty(rms.size)
+    for label in range(rms.size):
+        limits[label] = _TRIM_RMS * rms[label] if rms[label] == rms[label] else math.inf
+    moments = np.zeros((planes.shape[0], 10))
+    current = 0
+    run = _EMPTY_RUN
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label <= 0 or not (whole[label] or interior[i, j]):
+                continue
+            x = np.float64(points[i, j, 0])
+            y = np.float64(points[i, j, 1])
+            z = np.float64(points[i, j, 2])
+            offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
+            if not offset <= limits[label]:
+                if label != current:
+                    _run_flush(moments, current, run)
+                    current = label
+                    run = _EMPTY_RUN
+                run = _run_add(run, x, y, z)
+    _run_flush(moments, current, run)
+    return moments
 
 
 # --------------------------------------------------------------------------
-# Kernels.
+# Growing.
 # --------------------------------------------------------------------------
 
 
 @numba.njit(**_JIT)
-def _with_normal(valid, normals):  # pragma: no cover - compiled
-    """Valid pixels whose normal is known."""
-    height, width = valid.shape
-    usable = np.zeros((height, width), np.bool_)
+def _growing_grid(points, normals, min_coherence):  # pragma: no cover - compiled
+    """Ranges, growing state and seed order of a frame.
+
+    Returns
+
+    * distance (H, W) float32, the range of every point (NaN where invalid),
+      and the valid mask (H, W), as `rangesurf.normals._point_ranges`;
+    * state ((H + 2) * (W + 2),) int32, the grid framed by one pixel: 0
+      where a region may grow (a valid pixel with a known normal), -1
+      elsewhere and on the frame, so that growing needs no bounds checks;
+    * order: indices into ``state`` of the pixels that may seed a region,
+      smoothest first.
+
+    Smoothness (coherence) is the length of the mean unit normal over the
+    5x5 window of pixels that may grow (1 on a plane). Pixels below
+    ``min_coherence`` (on a crease, which smoothing rounds into a bevel, or
+    at an edge) never seed: a region started there would be a sliver between
+    two faces. They can still join a region. The window sums are float64
+    rounded to float32, as ``cv2.boxFilter`` gives them; the order is a
+    counting sort on coherence (65536 bins; raster order within one). Each
+    step is a loop of its own, simple enough for the compiler to vectorise.
+    """
+    height, width = points.shape[:2]
+    stride = width + 2
+    size = height * width
+    flat_points = points.reshape(size * 3)
+    flat_normals = normals.reshape(size * 3)
+    distance = np.empty(size, np.float32)
+    valid = np.empty(size, np.bool_)
+    squared = np.empty(width)
     for i in range(height):
+        base = i * width
         for j in range(width):
-            usable[i, j] = valid[i, j] and normals[i, j, 0] == normals[i, j, 0] and normals[i, j, 2] == normals[i, j, 2]
-    return usable
-
-
-@numba.njit(**_JIT)
-def _zero_where_not(values, mask):  # pragma: no cover - compiled
-    """Copy of ``values`` (H, W, C) with 0 where ``mask`` is False."""
-    out = np.zeros(values.shape, np.float32)
-    height, width = mask.shape
-    for i in range(height):
+            x = float(flat_points[3 * (base + j)])
+            y = float(flat_points[3 * (base + j) + 1])
+            z = float(flat_points[3 * (base + j) + 2])
+            squared[j] = x * x + y * y + z * z
         for j in range(width):
-            if mask[i, j]:
-                for k in range(values.shape[2]):
-                    out[i, j, k] = values[i, j, k]
-    return out
-
-
-@numba.njit(**_JIT)
-def _seeds_by_coherence(total, count, growable, min_coherence):  # pragma: no cover - compiled
-    """Flat indices of pixels with coherence >= ``min_coherence``, most coherent first (counting sort, 65536 bins)."""
-    height, width = growable.shape
+            is_valid = (squared[j] > 0.0) & (squared[j] < math.inf)
+            valid[base + j] = is_valid
+            distance[base + j] = math.sqrt(squared[j]) if is_valid else np.nan
+    state = np.full((height + 2) * stride, -1, np.int32)
     bins = 65536
     # Only the buckets of coherences >= min_coherence are ever filled: the histogram stops there.
     used = min(int((1.0 - min(max(min_coherence, 0.0), 1.0)) * (bins - 1)), bins - 1) + 1
-    key = np.full(height * width, -1, np.int64)
+    keys = np.empty((height, width), np.int32)
+    # One row of the normals (zero where a region may not grow) and of growth flags, framed by two zeros
+    # each side; the window sums along the last five rows (a ring); and their sum down the columns, which
+    # slides: the entering row added, the leaving one taken off.
+    row = np.zeros((4, width + 4))
+    row_sums = np.empty((5, 4, width))
+    window = np.zeros((4, width))
+    coherence = np.empty(width, np.float32)
+    for entering in range(height + 2):
+        if entering < height:
+            base = entering * width
+            framed = (entering + 1) * stride + 1
+            for j in range(width):
+                k = 3 * (base + j)
+                grows = valid[base + j] & (flat_normals[k] == flat_normals[k]) & (flat_normals[k + 2] == flat_normals[k + 2])
+                state[framed + j] = 0 if grows else -1
+                row[0, j + 2] = flat_normals[k] if grows else 0.0
+                row[1, j + 2] = flat_normals[k + 1] if grows else 0.0
+                row[2, j + 2] = flat_normals[k + 2] if grows else 0.0
+                row[3, j + 2] = 1.0 if grows else 0.0
+            sums = row_sums[entering % 5]
+            for channel in range(4):
+                for j in range(width):
+                    sums[channel, j] = (row[channel, j] + row[channel, j + 1] + row[channel, j + 2] + row[channel, j + 3]
+                                        + row[channel, j + 4])
+            for channel in range(4):
+                for j in range(width):
+                    window[channel, j] += sums[channel, j]
+        i = entering - 2
+        if i < 0:
+            continue
+        for j in range(width):
+            total0 = np.float32(window[0, j])
+            total1 = np.float32(window[1, j])
+            total2 = np.float32(window[2, j])
+            coherence[j] = math.sqrt(total0**2 + total1**2 + total2**2) / np.float32(window[3, j])
+        framed = (i + 1) * stride + 1
+        for j in range(width):
+            seeds = (state[framed + j] == 0) & (window[3, j] > 0) & (coherence[j] >= min_coherence)
+            smoothness = coherence[j] if seeds else 1.0
+            keys[i, j] = min(int((1.0 - min(smoothness, 1.0)) * (bins - 1)), used - 1) if seeds else -1
+        if i >= 2:
+            leaving = row_sums[(i - 2) % 5]
+            for channel in range(4):
+                for j in range(width):
+                    window[channel, j] -= leaving[channel, j]
     histogram = np.zeros(used + 1, np.int64)
     for i in range(height):
         for j in range(width):
-            if not growable[i, j] or count[i, j] <= 0:
+            if keys[i, j] >= 0:
+                histogram[keys[i, j] + 1] += 1
+    for key in range(used):
+        histogram[key + 1] += histogram[key]
+    order = np.empty(histogram[used], np.int32)
+    for i in range(height):
+        for j in range(width):
+            key = keys[i, j]
+            if key >= 0:
+                order[histogram[key]] = (i + 1) * stride + j + 1
+                histogram[key] += 1
+    return distance.reshape((height, width)), valid.reshape((height, width)), state, order
+
+
+@numba.njit(**_JIT)
+def _grow_kernel(points, normals, distance, sigma, state, order, distance_sigmas, cos_angle, depth_jump, min_size, first_fit):  # pragma: no cover - compiled
+    """Grow a region from each seed of ``order`` not yet taken (the module docstring says how).
+
+    ``state`` and ``order`` are `_growing_grid`'s; ``state`` is updated in
+    place. Returns the labels (H, W) int32 (0: no region) and the moments
+    of each region (row 0 empty).
+    """
+    height, width = distance.shape
+    stride = width + 2
+    # A pixel is p in the framed state and d in the (unframed, flattened) data; its neighbours right, down,
+    # left and up are p + steps[k] and d + data_steps[k]. The frame stops growth at the border.
+    steps = (1, stride, -1, -stride)
+    data_steps = (1, width, -1, -width)
+    point = points.reshape((height * width, 3))
+    normal_of = normals.reshape((height * width, 3))
+    range_of = distance.reshape(height * width)
+    noise = sigma.reshape(height * width)
+    # Pixels of dissolved regions: free to join, never a seed again.
+    spent = np.zeros(state.size, np.bool_)
+    queue = np.empty(height * width, np.int32)
+    queue_data = np.empty(height * width, np.int32)
+    moments = np.zeros((64, 10))
+    plane = np.empty(4)
+    normal = np.empty(3)
+    region = 0
+    for seed in order:
+        if state[seed] != 0 or spent[seed]:
+            continue
+        region += 1
+        if region >= moments.shape[0]:
+            grown = np.zeros((2 * moments.shape[0], 10))
+            grown[: moments.shape[0]] = moments
+            moments = grown
+        # Unframed index: the frame adds stride + 1 before row 0 and 2 per row.
+        s = seed - stride - 1 - 2 * (seed // stride - 1)
+        for k in range(3):
+            plane[k] = normal_of[s, k]
+        plane[3] = -(plane[0] * point[s, 0] + plane[1] * point[s, 1] + plane[2] * point[s, 2])
+        n0, n1, n2, n3 = plane[0], plane[1], plane[2], plane[3]
+        seed_noise = noise[s]
+        state[seed] = region
+        # The region's moments live in registers while it grows; memory sees them at each refit.
+        grown = _run_add(_EMPTY_RUN, np.float64(point[s, 0]), np.float64(point[s, 1]), np.float64(point[s, 2]))
+        queue[0] = seed
+        queue_data[0] = s
+        head, tail = 0, 1
+        next_fit = first_fit
+        while head < tail:
+            c = queue[head]
+            dc = queue_data[head]
+            head += 1
+            range_c = range_of[dc]
+            for direction in range(4):
+                q = c + steps[direction]
+                if state[q] != 0:
+                    continue
+                dq = dc + data_steps[direction]
+                # Join test: no depth jump, on the plane within the noise, normal agrees (plane in registers).
+                range_q = range_of[dq]
+                if abs(range_q - range_c) > depth_jump * min(range_q, range_c):
+                    continue
+                x = point[dq, 0]
+                y = point[dq, 1]
+                z = point[dq, 2]
+                if abs(n0 * x + n1 * y + n2 * z + n3) > distance_sigmas * noise[dq]:
+                    continue
+                if not (n0 * normal_of[dq, 0] + n1 * normal_of[dq, 1] + n2 * normal_of[dq, 2] >= cos_angle):
+                    continue
+                state[q] = region
+                grown = _run_add(grown, np.float64(x), np.float64(y), np.float64(z))
+                queue[tail] = q
+                queue_data[tail] = dq
+                tail += 1
+                if tail >= next_fit:
+                    for k in range(10):
+                        moments[region, k] = grown[k]
+                    _fit(moments, region, plane, seed_noise, normal)
+                    n0, n1, n2, n3 = plane[0], plane[1], plane[2], plane[3]
+                    next_fit = tail * _REFIT_GROWTH
+        for k in range(10):
+            moments[region, k] = grown[k]
+        if tail < min_size:
+            # The failed region's pixels are free to join another, but none seeds again.
+            for k in range(tail):
+                state[queue[k]] = 0
+                spent[queue[k]] = True
+            moments[region, :] = 0.0
+            region -= 1
+    labels = np.empty((height, width), np.int32)
+    for i in range(height):
+        for j in range(width):
+            labels[i, j] = max(state[(i + 1) * stride + j + 1], 0)
+    return labels, moments[: region + 1].copy()
+
+
+@numba.njit(**_JIT)
+def _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, depth_jump):  # pragma: no cover - compiled
+    """Move each boundary pixel to the neighbouring segment whose plane it fits best (in place).
+
+    Growing is greedy: the region that reaches a pixel first keeps it, so
+    near a crease or a small surface some pixels end up on the wrong side.
+    A pixel with a differently labelled 8-neighbour is given to whichever of
+    the segments around it (its own included) has the plane nearest to it,
+    in noise sigmas, unless that neighbour is across a depth jump. Every
+    pixel decides on the labels as they were; the moves are made after the
+    scan.
+
+    Returns the rows and the columns of the valid pixels no segment holds
+    (raster order), which the scan finds on its way.
+    """
+    height, width = labels.shape
+    free_rows = np.empty(height * width, np.int32)
+    free_cols = np.empty(height * width, np.int32)
+    n_free = 0
+    moved_rows = np.empty(height * width, np.int32)
+    moved_cols = np.empty(height * width, np.int32)
+    moved_to = np.empty(height * width, np.int32)
+    n_moved = 0
+    # Most pixels are inside their segment, all eight neighbours alike: nothing to move. Which of a row's
+    # are is found first, in a loop the compiler vectorises (the border's pixels never are).
+    inside = np.zeros(width, np.bool_)
+    for i in range(height):
+        if 0 < i < height - 1:
+            for j in range(1, width - 1):
+                own = labels[i, j]
+                inside[j] = ((labels[i - 1, j - 1] == own) & (labels[i - 1, j] == own) & (labels[i - 1, j + 1] == own)
+                             & (labels[i, j - 1] == own) & (labels[i, j + 1] == own)
+                             & (labels[i + 1, j - 1] == own) & (labels[i + 1, j] == own) & (labels[i + 1, j + 1] == own))
+        else:
+            inside[:] = False
+        for j in range(width):
+            own = labels[i, j]
+            if own <= 0:
+                if valid[i, j]:
+                    free_rows[n_free] = i
+                    free_cols[n_free] = j
+                    n_free += 1
                 continue
-            coherence = math.sqrt(total[i, j, 0] ** 2 + total[i, j, 1] ** 2 + total[i, j, 2] ** 2) / count[i, j]
-            if coherence < min_coherence:
+            if inside[j]:
                 continue
-            bucket = min(int((1.0 - min(coherence, 1.0)) * (bins - 1)), used - 1)
-            key[i * width + j] = bucket
-            histogram[bucket + 1] += 1
-    for b in range(used):
-        histogram[b + 1] += histogram[b]
-    order = np.empty(histogram[used], np.int64)
-    for index in range(height * width):
-        bucket = key[index]
-        if bucket >= 0:
-            order[histogram[bucket]] = index
-            histogram[bucket] += 1
-    return order
+            x = points[i, j, 0]
+            y = points[i, j, 1]
+            z = points[i, j, 2]
+            best = own
+            best_distance = abs(planes[own, 0] * x + planes[own, 1] * y + planes[own, 2] * z + planes[own, 3])
+            if not (best_distance == best_distance):
+                continue
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    qi = i + di
+                    qj = j + dj
+                    if qi < 0 or qj < 0 or qi >= height or qj >= width:
+                        continue
+                    other = labels[qi, qj]
+                    if other <= 0 or other == best or other == own:
+                        continue
+                    if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
+                        continue
+                    gap = abs(planes[other, 0] * x + planes[other, 1] * y + planes[other, 2] * z + planes[other, 3])
+                    if gap < best_distance:
+                        best = other
+                        best_distance = gap
+            if best != own and best_distance <= 3.0 * sigma[i, j]:
+                moved_rows[n_moved] = i
+                moved_cols[n_moved] = j
+                moved_to[n_moved] = best
+                n_moved += 1
+    for k in range(n_moved):
+        i = moved_rows[k]
+        j = moved_cols[k]
+        x = points[i, j, 0]
+        y = points[i, j, 1]
+        z = points[i, j, 2]
+        _add_moments(moments, labels[i, j], -x, -y, -z, -1.0)
+        _add_moments(moments, moved_to[k], x, y, z, 1.0)
+        labels[i, j] = moved_to[k]
+    return free_rows[:n_free], free_cols[:n_free]
+
+
+@numba.njit(**_JIT)
+def _free_pixels(labels, valid):  # pragma: no cover - compiled
+    """Rows and columns of the valid pixels no segment holds, in raster order."""
+    height, width = labels.shape
+    rows = np.empty(height * width, np.int32)
+    cols = np.empty(height * width, np.int32)
+    n_free = 0
+    for i in range(height):
+        for j in range(width):
+            if labels[i, j] <= 0 and valid[i, j]:
+                rows[n_free] = i
+                cols[n_free] = j
+                n_free += 1
+    return rows[:n_free], cols[:n_free]
+
+
+@numba.njit(**_JIT)
+def _absorb_kernel(points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, sweeps):  # pragma: no cover - compiled
+    """Give free pixels to the neighbouring segment whose plane is nearest, ring by ring (in place).
+
+    Outline pixels often have spoiled normals (their window straddled the
+    crease or the jump), so growing left them out; by distance alone, each
+    joins the adjacent segment whose plane it is nearest to, if within
+    ``distance_sigmas`` noise sigmas and not across a depth jump. Each sweep
+    decides on the labels of the previous one, so the order of the scan does
+    not matter; ``sweeps`` rings are added at most. ``free_rows`` and
+    ``free_cols`` are the free valid pixels (`_free_pixels`); returns those
+    left free, in the same arrays' first entries.
+    """
+    height, width = labels.shape
+    n_free = free_rows.size
+    chosen = np.empty(n_free, np.int32)
+    for _ in range(sweeps):
+        changed = 0
+        for k in range(n_free):
+            i = free_rows[k]
+            j = free_cols[k]
+            x = points[i, j, 0]
+            y = points[i, j, 1]
+            z = points[i, j, 2]
+            best = 0
+            best_gap = distance_sigmas * sigma[i, j]
+            for direction in range(4):
+                qi = i + _FOUR[direction, 0]
+                qj = j + _FOUR[direction, 1]
+                if qi < 0 or qj < 0 or qi >= height or qj >= width:
+                    continue
+                other = labels[qi, qj]
+                if other <= 0:
+                    continue
+                if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
+                    continue
+                gap = abs(planes[other, 0] * x + planes[other, 1] * y + planes[other, 2] * z + planes[other, 3])
+                if gap <= best_gap:
+                    best = other
+                    best_gap = gap
+            chosen[k] = best
+            changed += best > 0
+        if changed == 0:
+            break
+        remaining = 0
+        for k in range(n_free):
+            i = free_rows[k]
+            j = free_cols[k]
+            best = chosen[k]
+            if best > 0:
+                labels[i, j] = best
+                _add_moments(moments, best, points[i, j, 0], points[i, j, 1], points[i, j, 2], 1.0)
+            else:
+                free_rows[remaining] = i
+                free_cols[remaining] = j
+                remaining += 1
+        n_free = remaining
+    return free_rows[:n_free], free_cols[:n_free]
+
+
+# --------------------------------------------------------------------------
+# Moments.
+# --------------------------------------------------------------------------
 
 
 @numba.njit(**_JIT, inline="always")
@@ -580,137 +1085,6 @@ def _fit(moments, region, plane, noise, normal):  # pragma: no cover - compiled
         d = -d
     plane[3] = d
 
-
-@numba.njit(**_JIT)
-def _grow_kernel(points, normals, distance, sigma, growable, order, distance_sigmas, cos_angle, depth_jump, min_size, first_fit):  # pragma: no cover - compiled
-    height, width = growable.shape
-    labels = np.zeros((height, width), np.int32)
-    # Pixels of dissolved regions: free to join, never a seed again.
-    spent = np.zeros((height, width), np.bool_)
-    # Rows and columns in separate queues: no integer division per visited pixel.
-    queue_i = np.empty(height * width, np.int32)
-    queue_j = np.empty(height * width, np.int32)
-    moments = np.zeros((64, 10))
-    plane = np.empty(4)
-    normal = np.empty(3)
-    region = 0
-    for seed in order:
-        si, sj = seed // width, seed % width
-        if labels[si, sj] != 0 or spent[si, sj]:
-            continue
-        region += 1
-        if region >= moments.shape[0]:
-            grown = np.zeros((2 * moments.shape[0], 10))
-            grown[: moments.shape[0]] = moments
-            moments = grown
-        for k in range(3):
-            plane[k] = normals[si, sj, k]
-        plane[3] = -(plane[0] * points[si, sj, 0] + plane[1] * points[si, sj, 1] + plane[2] * points[si, sj, 2])
-        n0, n1, n2, n3 = plane[0], plane[1], plane[2], plane[3]
-        seed_noise = sigma[si, sj]
-        labels[si, sj] = region
-        # The region's moments live in registers while it grows; memory sees them at each refit.
-        grown = _run_add(_EMPTY_RUN, np.float64(points[si, sj, 0]), np.float64(points[si, sj, 1]), np.float64(points[si, sj, 2]))
-        queue_i[0] = si
-        queue_j[0] = sj
-        head, tail = 0, 1
-        next_fit = first_fit
-        while head < tail:
-            ci = queue_i[head]
-            cj = queue_j[head]
-            head += 1
-            range_c = distance[ci, cj]
-            for direction in range(4):
-                qi = ci + _FOUR[direction, 0]
-                qj = cj + _FOUR[direction, 1]
-                if qi < 0 or qj < 0 or qi >= height or qj >= width:
-                    continue
-                if labels[qi, qj] != 0 or not growable[qi, qj]:
-                    continue
-                # Join test: no depth jump, on the plane within the noise, normal agrees (plane in registers).
-                range_q = distance[qi, qj]
-                if abs(range_q - range_c) > depth_jump * min(range_q, range_c):
-                    continue
-                x = points[qi, qj, 0]
-                y = points[qi, qj, 1]
-                z = points[qi, qj, 2]
-                if abs(n0 * x + n1 * y + n2 * z + n3) > distance_sigmas * sigma[qi, qj]:
-                    continue
-                if not (n0 * normals[qi, qj, 0] + n1 * normals[qi, qj, 1] + n2 * normals[qi, qj, 2] >= cos_angle):
-                    continue
-                labels[qi, qj] = region
-                grown = _run_add(grown, np.float64(x), np.float64(y), np.float64(z))
-                queue_i[tail] = qi
-                queue_j[tail] = qj
-                tail += 1
-                if tail >= next_fit:
-                    for k in range(10):
-                        moments[region, k] = grown[k]
-                    _fit(moments, region, plane, seed_noise, normal)
-                    n0, n1, n2, n3 = plane[0], plane[1], plane[2], plane[3]
-                    next_fit = tail * _REFIT_GROWTH
-        for k in range(10):
-            moments[region, k] = grown[k]
-        if tail < min_size:
-            # Only the seed is spent: a failed start (a noisy seed normal) must not
-            # take its neighbours' chance to seed a region of their own.
-            for k in range(tail):
-                labels[queue_i[k], queue_j[k]] = 0
-                spent[queue_i[k], queue_j[k]] = True
-            moments[region, :] = 0.0
-            region -= 1
-    return labels, moments[: region + 1].copy()
-
-
-@numba.njit(**_JIT)
-def _refine_boundaries(points, distance, sigma, labels, planes, moments, depth_jump):  # pragma: no cover - compiled
-    """Move each boundary pixel to the neighbouring segment whose plane it fits best (in place).
-
-    Growing is greedy: the region that reaches a pixel first keeps it, so
-    near a crease or a small surface some pixels end up on the wrong side.
-    A pixel with a differently labelled 8-neighbour is given to whichever of
-    the segments around it (its own included) has the plane nearest to it,
-    in noise sigmas, unless that neighbour is across a depth jump.
-    """
-    height, width = labels.shape
-    original = labels.copy()
-    for i in range(height):
-        for j in range(width):
-            own = original[i, j]
-            if own <= 0:
-                continue
-            # Most pixels are inside their segment, all eight neighbours alike: nothing to move.
-            if 0 < i < height - 1 and 0 < j < width - 1:
-                if ((original[i - 1, j - 1] == own) & (original[i - 1, j] == own) & (original[i - 1, j + 1] == own)
-                        & (original[i, j - 1] == own) & (original[i, j + 1] == own)
-                        & (original[i + 1, j - 1] == own) & (original[i + 1, j] == own) & (original[i + 1, j + 1] == own)):
-                    continue
-            x = points[i, j, 0]
-            y = points[i, j, 1]
-            z = points[i, j, 2]
-            best = own
-            best_distance = abs(planes[own, 0] * x + planes[own, 1] * y + planes[own, 2] * z + planes[own, 3])
-            if not (best_distance == best_distance):
-                continue
-            for di in range(-1, 2):
-                for dj in range(-1, 2):
-                    qi = i + di
-                    qj = j + dj
-                    if qi < 0 or qj < 0 or qi >= height or qj >= width:
-                        continue
-                    other = original[qi, qj]
-                    if other <= 0 or other == best or other == own:
-                        continue
-                    if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
-                        continue
-                    gap = abs(planes[other, 0] * x + planes[other, 1] * y + planes[other, 2] * z + planes[other, 3])
-                    if gap < best_distance:
-                        best = other
-                        best_distance = gap
-            if best != own and best_distance <= 3.0 * sigma[i, j]:
-                labels[i, j] = best
-                _add_moments(moments, own, -x, -y, -z, -1.0)
-                _add_moments(moments, best, x, y, z, 1.0)
 
 
 @numba.njit(**_JIT, inline="always")
@@ -789,119 +1163,7 @@ def _masked_moments(points, labels, mask, n_labels):  # pragma: no cover - compi
     return moments
 
 
-@numba.njit(**_JIT)
-def _trimmed_kernel(points, labels, low, high, whole, planes, limits, n_labels):  # pragma: no cover - compiled
-    """Moments of the fitted pixels (interior, or all of a ``whole`` label) within ``limits`` of their plane."""
-    height, width = labels.shape
-    moments = np.zeros((n_labels, 10))
-    current = 0
-    run = _EMPTY_RUN
-    for i in range(height):
-        for j in range(width):
-            label = labels[i, j]
-            if label <= 0 or not (whole[label] or low[i, j] == high[i, j]):
-                continue
-            x = np.float64(points[i, j, 0])
-            y = np.float64(points[i, j, 1])
-            z = np.float64(points[i, j, 2])
-            offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
-            if offset <= limits[label]:
-                if label != current:
-                    _run_flush(moments, current, run)
-                    current = label
-                    run = _EMPTY_RUN
-                run = _run_add(run, x, y, z)
-    _run_flush(moments, current, run)
-    return moments
-
-
-@numba.njit(**_JIT)
-def _pixel_moments(labels, n_labels):  # pragma: no cover - compiled
-    """Per label: pixel count and sums of row, column, row^2, row*column, column^2."""
-    height, width = labels.shape
-    moments = np.zeros((n_labels, 6))
-    for i in range(height):
-        for j in range(width):
-            label = labels[i, j]
-            if label > 0:
-                moments[label, 0] += 1.0
-                moments[label, 1] += i
-                moments[label, 2] += j
-                moments[label, 3] += i * i
-                moments[label, 4] += i * j
-                moments[label, 5] += j * j
-    return moments
-
 
 def _label_moments(points: np.ndarray, labels: np.ndarray, n_labels: int) -> np.ndarray:
     """Point moments (n_labels, 10) of every label (row 0: unlabelled, left empty)."""
     return _masked_moments(points, labels, labels > 0, n_labels)
-
-
-@numba.njit(**_JIT)
-def _absorb_kernel(points, distance, sigma, valid, labels, planes, moments, distance_sigmas, depth_jump, sweeps):  # pragma: no cover - compiled
-    """Give free pixels to the neighbouring segment whose plane is nearest, ring by ring (in place).
-
-    Outline pixels often have spoiled normals (their window straddled the
-    crease or the jump), so growing left them out; by distance alone, each
-    joins the adjacent segment whose plane it is nearest to, if within
-    ``distance_sigmas`` noise sigmas and not across a depth jump. Each sweep
-    decides on the labels of the previous one, so the order of the scan does
-    not matter; ``sweeps`` rings are added at most. Returns the number of
-    valid pixels left free.
-    """
-    height, width = labels.shape
-    # The free valid pixels, in scan order; each sweep decides on the labels of the previous one, so its
-    # choices are applied after it.
-    free_i = np.empty(height * width, np.int32)
-    free_j = np.empty(height * width, np.int32)
-    n_free = 0
-    for i in range(height):
-        for j in range(width):
-            if labels[i, j] == 0 and valid[i, j]:
-                free_i[n_free] = i
-                free_j[n_free] = j
-                n_free += 1
-    chosen = np.empty(n_free, np.int32)
-    for _ in range(sweeps):
-        changed = 0
-        for k in range(n_free):
-            i = free_i[k]
-            j = free_j[k]
-            x = points[i, j, 0]
-            y = points[i, j, 1]
-            z = points[i, j, 2]
-            best = 0
-            best_gap = distance_sigmas * sigma[i, j]
-            for direction in range(4):
-                qi = i + _FOUR[direction, 0]
-                qj = j + _FOUR[direction, 1]
-                if qi < 0 or qj < 0 or qi >= height or qj >= width:
-                    continue
-                other = labels[qi, qj]
-                if other <= 0:
-                    continue
-                if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
-                    continue
-                gap = abs(planes[other, 0] * x + planes[other, 1] * y + planes[other, 2] * z + planes[other, 3])
-                if gap <= best_gap:
-                    best = other
-                    best_gap = gap
-            chosen[k] = best
-            changed += best > 0
-        if changed == 0:
-            break
-        remaining = 0
-        for k in range(n_free):
-            i = free_i[k]
-            j = free_j[k]
-            best = chosen[k]
-            if best > 0:
-                labels[i, j] = best
-                _add_moments(moments, best, points[i, j, 0], points[i, j, 1], points[i, j, 2], 1.0)
-            else:
-                free_i[remaining] = i
-                free_j[remaining] = j
-                remaining += 1
-        n_free = remaining
-    return n_free
