@@ -41,7 +41,7 @@ from rangesurf.merge import GlobalModel, MergeStep, TSDFVolume
 from rangesurf.mesh import Surface, segment_vertices, triangulate_segments
 from rangesurf.normals import estimate_normals
 from rangesurf.register import FrameTracker, RegistrationResult
-from rangesurf.segment import Segmentation, segment_nxd, segment_planes
+from rangesurf.segment import Segmentation, growing_decimation, segment_nxd, segment_planes
 
 __all__ = ["Pipeline", "FrameResult", "STAGES"]
 
@@ -177,8 +177,13 @@ class Pipeline:
         lap("denoise")
 
         projection = frame.sensor.projection if isinstance(frame.sensor.projection, PinholeProjection) else None
+        step = self._decimation(frame)
+        shared_normals = None
         if self.config.segment.segmenter == "region":
-            segmentation = segment_planes(points, range_sigma=sigma, projection=projection)
+            if step == 1 and growing_decimation(*points.shape[:2]) == 1:
+                # Segmentation and registration need the same normals of the same points: once.
+                shared_normals = estimate_normals(points, projection=projection, range_sigma=sigma)
+            segmentation = segment_planes(points, range_sigma=sigma, projection=projection, normals=shared_normals)
         else:
             segmentation = segment_nxd(points, estimate_normals(points, projection=projection, range_sigma=sigma))
         lap("segment")
@@ -195,7 +200,6 @@ class Pipeline:
                                                   max_view_angle=self.config.mesh.max_view_angle, range_sigma=sigma)
         lap("surfaces")
 
-        step = self._decimation(frame)
         # ICP's residuals are correlated over a patch of the full-resolution grid; on a thinned grid
         # neighbours lie further apart and err less alike (calibrated: benchmarks/calibration.py).
         self.tracker.icp_variance_scale = self.config.register.icp_variance_scale / step
@@ -204,7 +208,8 @@ class Pipeline:
         if projection is not None and step > 1:
             icp_projection = PinholeProjection(projection.fx / step, projection.fy / step, projection.cx / step,
                                                projection.cy / step)
-        normals = estimate_normals(icp_points, projection=icp_projection, range_sigma=icp_sigma)
+        normals = shared_normals if shared_normals is not None else estimate_normals(
+            icp_points, projection=icp_projection, range_sigma=icp_sigma)
         if icp_projection is None:
             # No pinhole: closest-point registration on the valid points (k-d tree).
             keep = np.isfinite(icp_points).all(axis=-1) & np.isfinite(normals).all(axis=-1)

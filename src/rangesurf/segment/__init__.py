@@ -12,7 +12,7 @@ Every segmenter returns a `Segmentation` (labels, planes, residuals, sizes);
 `segment_frame` denoising, normals and a segmenter on one `RangeFrame`.
 """
 
-from rangesurf.segment._frame import SEGMENTERS, SegmentedFrame, segment_frame, segment_planes
+from rangesurf.segment._frame import SEGMENTERS, SegmentedFrame, growing_decimation, segment_frame, segment_planes
 from rangesurf.segment._segmentation import Segmentation
 from rangesurf.segment.evaluate import (
     SegmentationScores,
@@ -37,6 +37,7 @@ __all__ = [
     "segment_frame",
     "segment_nxd",
     "segment_planes",
+    "growing_decimation",
     "transform_planes",
     "truth_segmentation",
 ]
