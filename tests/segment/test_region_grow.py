@@ -379,3 +379,24 @@ def test_seed_order_matches_box_filter_reference():
 def test_label_moments_match_numpy_reference():
     points, labels = noisy_scene(11)
     assert np.allclose(region_grow._label_moments(points, labels, 4), moments_reference(points, labels, 4), rtol=1e-9, atol=1e-9)
+
+
+def test_segment_planes_takes_the_callers_normals():
+    """Normals the caller has (the pipeline's, shared with registration) give the very same segmentation."""
+    from rangesurf.normals import estimate_normals
+    from rangesurf.segment import growing_decimation, segment_planes
+
+    frames, _ = simulate.simulate_sequence("arena", "sr3000", 1, seed=4)
+    frame = frames[0]
+    points = frame.points.astype(np.float32)
+    sigma = frame.sensor.range_sigma(np.where(np.isfinite(frame.range), frame.range, 1.0), frame.intensity)
+    assert growing_decimation(*points.shape[:2]) == 1 and growing_decimation(480, 640) == 3
+    normals = estimate_normals(points, projection=frame.sensor.projection, range_sigma=sigma)
+    own = segment_planes(points, range_sigma=sigma, projection=frame.sensor.projection)
+    given = segment_planes(points, range_sigma=sigma, projection=frame.sensor.projection, normals=normals)
+    assert own.n_segments >= 4
+    assert np.array_equal(own.labels, given.labels) and np.array_equal(own.planes, given.planes)
+    with pytest.raises(ValueError, match="without decimation"):
+        segment_planes(points, range_sigma=sigma, normals=normals, decimate=2)
+    with pytest.raises(ValueError, match="must match"):
+        segment_planes(points, range_sigma=sigma, normals=normals[1:])
