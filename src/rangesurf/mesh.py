@@ -286,24 +286,88 @@ def segment_vertices(
     # Check and work on the strided grid only (a depth camera's frame is thinned several times);
     # pixel coordinates are mapped back at the end.
     points = check_point_grid(np.asarray(points)[::stride, ::stride])
-    labels = labels[::stride, ::stride]
-    distance, valid = ranges(points)
+    labels = np.ascontiguousarray(labels[::stride, ::stride], dtype=np.int32)
+    distance, _ = ranges(points)
     if range_sigma is not None:
         range_sigma = check_range_sigma(distance, np.asarray(range_sigma)[::stride, ::stride] if np.ndim(range_sigma) else range_sigma)
-    rows, cols = np.nonzero(valid & (labels > 0))
-    found = labels[rows, cols]
-    order = np.argsort(found, kind="stable")
-    rows, cols, found = rows[order], cols[order], found[order]
-    bounds = np.searchsorted(found, np.arange(1, segmentation.n_segments + 2))
+    planes = np.asarray(segmentation.planes, dtype=np.float64)
+    # One compiled pass sorts the valid pixels by segment and sees each one's noise along its plane's normal.
+    starts, rows, cols, along, squares = _gather_segments(
+        points, labels, distance, np.empty((0, 0)) if range_sigma is None else range_sigma, planes, segmentation.n_segments)
     surfaces = []
     for label in range(1, segmentation.n_segments + 1):
-        begin, end = bounds[label - 1], bounds[label]
-        if end > begin:
-            surface = _segment_surface(points, distance, range_sigma, segmentation, label, rows[begin:end],
-                                       cols[begin:end], np.zeros((0, 3), np.int32))
-            surface.pixels *= stride
-            surfaces.append(surface)
+        begin, end = starts[label], starts[label + 1]
+        if end == begin:
+            continue
+        plane = planes[label]
+        count = end - begin
+        normals = np.broadcast_to((plane[:3] if np.isfinite(plane).all() else np.full(3, np.nan)).astype(np.float32), (count, 3))
+        uncertainty = {}
+        if range_sigma is not None:
+            uncertainty["UL1"] = _denoised(along[begin:end], segmentation.residuals[label], math.sqrt(squares[label] / count))
+        if np.isfinite(segmentation.residuals[label]):
+            uncertainty["UL2"] = np.full(count, segmentation.residuals[label], np.float32)
+        surfaces.append(Surface(
+            vertices=points[rows[begin:end], cols[begin:end]], faces=np.zeros((0, 3), np.int32), normals=normals,
+            pixels=np.column_stack([rows[begin:end], cols[begin:end]]) * stride, plane=plane, segment=label,
+            uncertainty=uncertainty,
+        ))
     return surfaces
+
+
+@numba.njit(**_JIT)
+def _gather_segments(points, labels, distance, sigma, planes, n_segments):  # pragma: no cover - compiled
+    """The valid labelled pixels grouped by label (row-major within each), with their noise along the normal.
+
+    Returns ``starts`` (label k's pixels are ``starts[k]:starts[k + 1]``),
+    their rows and columns, ``sigma |cos(incidence)|`` per pixel (the
+    sigma itself where the segment has no plane; empty without ``sigma``)
+    and its sum of squares per label.
+    """
+    height, width = labels.shape
+    counts = np.zeros(n_segments + 2, np.int64)
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label > 0 and distance[i, j] == distance[i, j]:
+                counts[label + 1] += 1
+    starts = np.cumsum(counts)
+    total = starts[-1]
+    rows = np.empty(total, np.int64)
+    cols = np.empty(total, np.int64)
+    with_sigma = sigma.shape[0] > 0
+    along = np.empty(total if with_sigma else 0)
+    squares = np.zeros(n_segments + 1)
+    filled = starts[:-1].copy()
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label <= 0 or distance[i, j] != distance[i, j]:
+                continue
+            k = filled[label]
+            filled[label] += 1
+            rows[k], cols[k] = i, j
+            if with_sigma:
+                nx, ny, nz = planes[label, 0], planes[label, 1], planes[label, 2]
+                value = sigma[i, j]
+                cosine = abs(points[i, j, 0] * nx + points[i, j, 1] * ny + points[i, j, 2] * nz) / max(distance[i, j], 1e-12)
+                if cosine == cosine:
+                    value *= cosine
+                along[k] = value
+                squares[label] += value * value
+    return starts, rows, cols, along, squares
+
+
+def _denoised(along_normal: np.ndarray, residual: float, predicted: float) -> np.ndarray:
+    """UL1 of a segment's vertices: the sensor noise along the normal, scaled down to what denoising left.
+
+    A planar segment's fit residual is the noise left after denoising; where
+    it is below what the sensor model predicts (``predicted``, the RMS of
+    ``along_normal``), the noise is scaled down by their ratio.
+    """
+    if math.isfinite(residual) and predicted > 0:
+        along_normal = along_normal * min(1.0, float(residual) / predicted)
+    return along_normal.astype(np.float32)
 
 
 def _segment_surface(points, distance, range_sigma, segmentation, label, rows, cols, faces) -> Surface:
@@ -320,13 +384,8 @@ def _segment_surface(points, distance, range_sigma, segmentation, label, rows, c
         rays = vertices / np.maximum(distance[rows, cols], 1e-12)[:, None]
         cosine = np.abs(np.einsum("ij,ij->i", rays, normals))
         along_normal = np.nan_to_num(range_sigma[rows, cols] * cosine, nan=range_sigma[rows, cols])
-        # What denoising removed, estimated from the data: a planar segment's fit residual is the noise
-        # left after denoising; where it is below what the sensor model predicts, scale down.
-        residual = segmentation.residuals[label]
         predicted = float(np.sqrt(np.mean(along_normal**2))) if len(along_normal) else 0.0
-        if np.isfinite(residual) and predicted > 0:
-            along_normal = along_normal * min(1.0, float(residual) / predicted)
-        uncertainty["UL1"] = along_normal.astype(np.float32)
+        uncertainty["UL1"] = _denoised(along_normal, segmentation.residuals[label], predicted)
     if np.isfinite(segmentation.residuals[label]):
         uncertainty["UL2"] = np.full(len(rows), segmentation.residuals[label], np.float32)
     return Surface(
