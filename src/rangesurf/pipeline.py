@@ -149,7 +149,8 @@ class Pipeline:
     def _stride(self, frame: RangeFrame, distance: np.ndarray) -> int:
         if self.config.merge.stride is not None:
             return self.config.merge.stride
-        footprint = _median_footprint(frame, distance)
+        # Every frame: a sparser sample than the cell size's (2.5 -> 0.2 ms at 640x480).
+        footprint = _median_footprint(frame, distance, rows=8, columns=4)
         return max(1, round(self.model.cell_size / footprint)) if footprint > 0 else 1
 
     # ------------------------------------------------------------------
@@ -343,11 +344,14 @@ class Pipeline:
         return pipeline
 
 
-def _median_footprint(frame: RangeFrame, distance: np.ndarray) -> float:
-    """Median distance (metres) between horizontally neighbouring rays at their range (every 4th row)."""
-    rays = frame.rays[::4]
-    cosine = np.clip((rays[:, 1:] * rays[:, :-1]).sum(axis=-1), -1.0, 1.0)
+def _median_footprint(frame: RangeFrame, distance: np.ndarray, *, rows: int = 4, columns: int = 1) -> float:
+    """Median distance (metres) between horizontally neighbouring rays at their range.
+
+    On every ``rows``-th row, the ray pairs starting at every ``columns``-th column.
+    """
+    rays = frame.rays[::rows]
+    cosine = np.clip((rays[:, 1::columns] * rays[:, : rays.shape[1] - 1 : columns]).sum(axis=-1), -1.0, 1.0)
     angle = np.arccos(cosine)
-    footprint = angle * distance[::4, 1:]
+    footprint = angle * distance[::rows, 1::columns]
     footprint = footprint[np.isfinite(footprint) & (footprint > 0)]
     return float(np.median(footprint)) if footprint.size else 0.0
