@@ -58,9 +58,9 @@ class SegmentSettings:
 class RegisterSettings:
     """`rangesurf.register.FrameTracker`.
 
-    ``decimate``: register on every n-th row and column (None: 2 from
-    200,000 pixels on, else 1) -- ICP needs far fewer points than a depth
-    camera gives. ``icp_variance_scale``: how much ICP's independent-residual
+    ``decimate``: register on every n-th row and column (None: from 200,000
+    pixels on, the grid segmentation grows on -- 3 at 640x480 -- else 1):
+    ICP needs far fewer points than a depth camera gives. ``icp_variance_scale``: how much ICP's independent-residual
     covariance understates its error (see `FrameTracker`).
     ``align_to_model_every``: every n-th frame's pose is corrected by its
     planes' fit to the model (`GlobalModel.align`: revisited places pull a

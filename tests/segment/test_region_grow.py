@@ -396,7 +396,7 @@ def test_segment_planes_takes_the_callers_normals():
     given = segment_planes(points, range_sigma=sigma, projection=frame.sensor.projection, normals=normals)
     assert own.n_segments >= 4
     assert np.array_equal(own.labels, given.labels) and np.array_equal(own.planes, given.planes, equal_nan=True)
-    with pytest.raises(ValueError, match="without decimation"):
+    with pytest.raises(ValueError, match="decimated by 2"):
         segment_planes(points, range_sigma=sigma, normals=normals, decimate=2)
     with pytest.raises(ValueError, match="must match"):
         segment_planes(points, range_sigma=sigma, normals=normals[1:])

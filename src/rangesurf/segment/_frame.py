@@ -58,10 +58,11 @@ def segment_planes(
         an SR-3000 or a 3DTK scan). On simulated 640x480 frames factors 2-4
         find the same planes as growing at full resolution, with normal
         errors as low, in a third of the time (`growing_decimation`).
-    normals : (H, W, 3) array, optional
-        `estimate_normals` of these points with this projection and sigma,
-        when the caller has them already (the pipeline registers with the
-        same normals); without decimation only.
+    normals : array, optional
+        `estimate_normals` of the points grown on (``points[::decimate,
+        ::decimate]``, with the projection and sigma decimated alike), when
+        the caller has them already (the pipeline registers with the same
+        normals).
 
     Returns
     -------
@@ -85,10 +86,9 @@ def segment_planes(
         raise ValueError(f"decimate must be an integer >= 1, got {decimate!r}")
     if normals is not None:
         normals = np.asarray(normals)
-        if decimate != 1:
-            raise ValueError(f"normals can be given only without decimation, got decimate={decimate}")
-        if normals.shape != points.shape:
-            raise ValueError(f"normals {normals.shape} must match the points {points.shape}")
+        grown = points[::decimate, ::decimate].shape
+        if normals.shape != grown:
+            raise ValueError(f"normals {normals.shape} must match the points grown on, {grown} (decimated by {decimate})")
     if decimate == 1:
         # The normal estimator refuses Inf points and checks the sigma where there is a return, in its
         # own passes; growing finds the ranges in its first one.
@@ -111,7 +111,8 @@ def segment_planes(
         coarse_projection = PinholeProjection(
             fx=projection.fx / decimate, fy=projection.fy / decimate, cx=projection.cx / decimate, cy=projection.cy / decimate
         )
-    normals = estimate_normals(coarse_points, projection=coarse_projection, range_sigma=coarse_sigma)
+    if normals is None:
+        normals = estimate_normals(coarse_points, projection=coarse_projection, range_sigma=coarse_sigma)
     coarse = _grow(coarse_points, normals, coarse_sigma)
     return _refine_upsampled(points, distance, valid, sigma, coarse, decimate)
 
