@@ -633,21 +633,7 @@ def _interior_kernel(points, labels, lookup, n_labels):  # pragma: no cover - co
             for offset in range(2 * margin):
                 spoiled |= down_near[i + offset, j]
             interior[i, j] = (mapped[i, j] > 0) & ~spoiled
-    outline = np.zeros((n_labels, 10))
-    current = 0
-    run = _EMPTY_RUN
-    for i in range(height):
-        for j in range(width):
-            label = mapped[i, j]
-            if label <= 0 or interior[i, j]:
-                continue
-            if label != current:
-                _run_flush(outline, current, run)
-                current = label
-                run = _EMPTY_RUN
-            run = _run_add(run, np.float64(points[i, j, 0]), np.float64(points[i, j, 1]), np.float64(points[i, j, 2]))
-    _run_flush(outline, current, run)
-    return mapped, interior, outline
+    return mapped, interior, _masked_moments(points, mapped, ~interior, n_labels)
 
 
 @numba.njit(**_JIT)
