@@ -659,11 +659,7 @@ def _outlier_moments(points, labels, interior, whole, planes, rms):  # pragma: n
             z = np.float64(points[i, j, 2])
             offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
             if not offset <= limits[label]:
-                if label != current:
-                    _run_flush(moments, current, run)
-                    current = label
-                    run = _EMPTY_RUN
-                run = _run_add(run, x, y, z)
+                current, run = _run_into(moments, current, run, label, x, y, z)
     _run_flush(moments, current, run)
     return moments
 
@@ -1120,13 +1116,19 @@ def _upsampled_labels(points, valid, sigma, coarse_labels, factor, planes, dista
             if offset > distance_sigmas * sigma[i, j]:
                 continue
             labels[i, j] = label
-            if label != current:
-                _run_flush(moments, current, run)
-                current = label
-                run = _EMPTY_RUN
-            run = _run_add(run, x, y, z)
+            current, run = _run_into(moments, current, run, label, x, y, z)
     _run_flush(moments, current, run)
     return labels, moments
+
+
+@numba.njit(**_JIT)
+def _run_into(moments, current, run, label, x, y, z):  # pragma: no cover - compiled
+    """Add a point to the running sums of ``label``, flushing the previous label's run into ``moments`` first."""
+    if label != current:
+        _run_flush(moments, current, run)
+        current = label
+        run = _EMPTY_RUN
+    return current, _run_add(run, x, y, z)
 
 
 @numba.njit(**_JIT)
@@ -1140,11 +1142,8 @@ def _masked_moments(points, labels, mask, n_labels):  # pragma: no cover - compi
         for j in range(width):
             label = labels[i, j]
             if label > 0 and mask[i, j]:
-                if label != current:
-                    _run_flush(moments, current, run)
-                    current = label
-                    run = _EMPTY_RUN
-                run = _run_add(run, np.float64(points[i, j, 0]), np.float64(points[i, j, 1]), np.float64(points[i, j, 2]))
+                x, y, z = np.float64(points[i, j, 0]), np.float64(points[i, j, 1]), np.float64(points[i, j, 2])
+                current, run = _run_into(moments, current, run, label, x, y, z)
     _run_flush(moments, current, run)
     return moments
 
