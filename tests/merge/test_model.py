@@ -254,3 +254,27 @@ def test_bad_inputs(tmp_path):
     np.savez(tmp_path / "other.npz", poses=np.zeros((0, 4, 4)))
     with pytest.raises(FormatError, match="format_version"):
         GlobalModel.load(tmp_path / "other.npz")
+
+
+def test_touching_counts_points_near_occupied_cells():
+    """`PlanarPatch.touching` against a reference: the patch's occupancy image, dilated by the reach."""
+    import cv2
+
+    from rangesurf.merge.planar import Observations, PlanarPatch
+
+    rng = np.random.default_rng(0)
+    patch = PlanarPatch.from_plane(np.array([0.0, 0, 1, 0]), np.zeros((1, 3)), 0.02)
+    seen = np.column_stack([rng.uniform(-0.5, 0.5, 400), rng.uniform(-0.5, 0.5, 400), rng.normal(0, 0.01, 400)])
+    seen = seen[(np.abs(seen[:, 0]) < 0.2) | (seen[:, 1] > 0.3)]  # a T of cells, with holes
+    patch.fuse(Observations(seen, np.full(len(seen), 1e-6), np.zeros(len(seen)), np.zeros(len(seen))), 0)
+    probe = np.column_stack([rng.uniform(-1, 1, 3000), rng.uniform(-1, 1, 3000), rng.normal(0, 0.02, 3000)])
+    for reach in (0, 1, 2):
+        image, column0, row0 = patch.occupancy(margin=reach)
+        if reach:
+            image = cv2.dilate(image, np.ones((2 * reach + 1, 2 * reach + 1), np.uint8))
+        local = patch.local(probe)
+        columns = np.floor(local[:, 0] / patch.cell_size).astype(int) - column0
+        rows = np.floor(local[:, 1] / patch.cell_size).astype(int) - row0
+        inside = (columns >= 0) & (rows >= 0) & (columns < image.shape[1]) & (rows < image.shape[0])
+        expected = int(image[rows[inside], columns[inside]].sum())
+        assert expected > 50 and patch.touching(probe, reach) == expected
