@@ -406,8 +406,9 @@ class TrackedPose:
         the prior's uncertainty.
     step_covariance : (6, 6) float64
         This frame's own registration uncertainty (against its keyframe,
-        or the prior's on a fallback), in world coordinates: what a model
-        fused from registered frames should weigh each frame by.
+        or the prior's on a fallback), in world coordinates; ``covariance``
+        adds the keyframe's (the drift so far), which is what a model in
+        world coordinates should weigh the frame by.
     """
 
     T_world_sensor: np.ndarray
