@@ -41,7 +41,7 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
-from rangesurf.mesh import Surface, boundary_loops, triangulate_in_plane
+from rangesurf.mesh import Surface, boundary_loops, delaunay_2d
 
 __all__ = ["Level", "prepare_levels", "progressive_order", "build_levels", "build_levels_at", "view_level", "select_level", "screen_space_level", "distance_level"]
 
@@ -206,7 +206,7 @@ def build_levels(surface: Surface, *, min_vertices: int = 3, ratio: float = 0.5)
 
 def build_levels_at(surface: Surface, counts: list[int]) -> list[Level]:
     """Triangulate the levels of an ordered surface at the given vertex counts (see `build_levels`)."""
-    xy, _, _ = _plane_frame(surface)
+    xy, height, _ = _plane_frame(surface)
     order, error = surface.lod_order, surface.lod_error
     # Coarse levels are Delaunay triangulations of the kept vertices, which fill the convex hull;
     # a triangle stays only if its centroid lies inside the full-resolution outline (even-odd over
@@ -217,27 +217,56 @@ def build_levels_at(surface: Surface, counts: list[int]) -> list[Level]:
         if not 1 <= count <= surface.n_vertices:
             raise ValueError(f"level vertex counts must be in 1..{surface.n_vertices}, got {count}")
         kept = order[:count]
+        triangulation = None
         if count == surface.n_vertices:
             faces = _reindex(surface.faces, order)
         else:
-            faces = triangulate_in_plane(surface.vertices[kept], _level_plane(surface), max_edge=np.inf)
+            # In the plane frame of `_plane_frame`, the one `triangulate_in_plane` uses too.
+            faces, triangulation = delaunay_2d(xy[kept])
             if len(faces):
                 faces = faces[coverage.contains(xy[kept][faces].mean(axis=1))]
         tree = cKDTree(xy[kept])
         spacing = float(np.median(tree.query(xy[kept], k=2)[0][:, 1])) if count > 1 else 0.0
         vertex_error = np.zeros(count, np.float32)
         if count < surface.n_vertices:
-            # A standard deviation, like the other levels: the RMS error of the removed vertices
-            # nearest to each kept one.
-            _, nearest = tree.query(xy[order[count:]])
-            squares = np.bincount(nearest, weights=error[count:].astype(np.float64) ** 2, minlength=count)
-            removed = np.bincount(nearest, minlength=count)
-            vertex_error = np.sqrt(squares / np.maximum(removed, 1)).astype(np.float32)
+            # A standard deviation, like the other levels: the RMS height of the removed vertices nearest
+            # to each kept one above the level's triangles.
+            # The errors recorded at removal run high (they are running maxima); how high is measured on
+            # a sample of the removed vertices against the level's triangles, and taken out.
+            removed = order[count:]
+            _, nearest = tree.query(xy[removed])
+            recorded = error[count:].astype(np.float64)
+            step = max(1, len(removed) // _UL4_SAMPLE)
+            sample = removed[::step]
+            measured = _height_above(triangulation, height[kept], xy[sample], height[sample], recorded[::step])
+            scale = math.sqrt(float(measured @ measured) / float(recorded[::step] @ recorded[::step])) if recorded[::step].any() else 1.0
+            squares = np.bincount(nearest, weights=recorded**2, minlength=count)
+            vertex_error = (scale * np.sqrt(squares / np.maximum(np.bincount(nearest, minlength=count), 1))).astype(np.float32)
         levels.append(
             Level(count=count, faces=faces.astype(np.int32), error=float(error[count]) if count < len(error) else 0.0,
                   spacing=spacing, vertex_error=vertex_error)
         )
     return levels
+
+
+def _height_above(triangulation, kept_height, removed_xy, removed_height, removal_error) -> np.ndarray:
+    """How far each removed vertex lies from the kept ones' Delaunay triangles (by height in the plane frame);
+    outside their hull, or with no triangulation, the error recorded when it was removed."""
+    deviation = np.abs(removal_error).astype(np.float64)
+    if triangulation is None:
+        return deviation
+    simplex = triangulation.find_simplex(removed_xy)
+    inside = simplex >= 0
+    affine = triangulation.transform[simplex[inside]]
+    partial = np.einsum("ijk,ik->ij", affine[:, :2], removed_xy[inside] - affine[:, 2])
+    weights = np.column_stack([partial, 1.0 - partial.sum(axis=1)])
+    surface_height = (kept_height[triangulation.simplices[simplex[inside]]] * weights).sum(axis=1)
+    deviation[inside] = np.abs(removed_height[inside] - surface_height)
+    return deviation
+
+
+# Removed vertices per level whose height above the level's triangles is measured (to scale UL4).
+_UL4_SAMPLE = 2000
 
 
 class _Coverage:
@@ -270,13 +299,6 @@ def _reindex(faces: np.ndarray, order: np.ndarray) -> np.ndarray:
     position = np.empty(len(order), np.int64)
     position[order] = np.arange(len(order))
     return position[faces]
-
-
-def _level_plane(surface: Surface) -> np.ndarray:
-    if np.isfinite(surface.plane).all():
-        return surface.plane
-    _, _, normal = _plane_frame(surface)
-    return np.r_[normal, 0.0]
 
 
 def select_level(levels: list[Level], *, count: int | None = None, fraction: float | None = None,

@@ -556,6 +556,27 @@ def _vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
 # --------------------------------------------------------------------------
 
 
+def delaunay_2d(flat: np.ndarray) -> tuple[np.ndarray, Delaunay | None]:
+    """Delaunay triangles of 2-D points, counter-clockwise, without slivers of no area; and the triangulation.
+
+    Empty (and None) for fewer than 3 points or collinear or duplicate-only ones.
+    """
+    if len(flat) < 3:
+        return np.zeros((0, 3), np.int32), None
+    try:
+        triangulation = Delaunay(flat)
+    except QhullError:
+        return np.zeros((0, 3), np.int32), None  # no area to triangulate
+    triangles = triangulation.simplices
+    corners = flat[triangles]
+    # Counter-clockwise in (u, v) is counter-clockwise seen from +normal.
+    signed = (corners[:, 1, 0] - corners[:, 0, 0]) * (corners[:, 2, 1] - corners[:, 0, 1]) - (
+        corners[:, 1, 1] - corners[:, 0, 1]
+    ) * (corners[:, 2, 0] - corners[:, 0, 0])
+    triangles = np.where((signed < 0)[:, None], triangles[:, [0, 2, 1]], triangles)
+    return triangles[np.abs(signed) > 1e-12 * max(np.ptp(flat), 1e-9) ** 2].astype(np.int32), triangulation
+
+
 def triangulate_in_plane(vertices: ArrayLike, plane: ArrayLike, *, max_edge: float | None = None) -> np.ndarray:
     """Delaunay triangles of points on (or near) a plane, computed in the plane's 2-D coordinates.
 
@@ -601,17 +622,9 @@ def triangulate_in_plane(vertices: ArrayLike, plane: ArrayLike, *, max_edge: flo
     u /= np.linalg.norm(u)
     v = np.cross(normal, u)
     flat = np.column_stack([vertices @ u, vertices @ v])
-    try:
-        triangles = Delaunay(flat).simplices
-    except QhullError:
-        return empty  # collinear or duplicate-only input: no area to triangulate
-    corners = flat[triangles]
-    # Counter-clockwise in (u, v) is counter-clockwise seen from +normal.
-    signed = (corners[:, 1, 0] - corners[:, 0, 0]) * (corners[:, 2, 1] - corners[:, 0, 1]) - (
-        corners[:, 1, 1] - corners[:, 0, 1]
-    ) * (corners[:, 2, 0] - corners[:, 0, 0])
-    triangles = np.where((signed < 0)[:, None], triangles[:, [0, 2, 1]], triangles)
-    triangles = triangles[np.abs(signed) > 1e-12 * max(np.ptp(flat), 1e-9) ** 2]
+    triangles, _ = delaunay_2d(flat)
+    if not len(triangles):
+        return empty
     if max_edge is None:
         spacing = _nearest_spacing(flat)
         max_edge = 3.0 * spacing if spacing > 0 else np.inf
