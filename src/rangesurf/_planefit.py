@@ -150,21 +150,6 @@ def _planes_kernel(moments):  # pragma: no cover - compiled
         planes[k, 3] = sign * d
         rms[k] = math.sqrt(smallest)
     return planes, rms
-    m = moments[usable]
-    mean = m[:, 1:4] / m[:, :1]
-    xx, xy, xz, yy, yz, zz = (m[:, k] / m[:, 0] for k in range(4, 10))
-    covariance = np.stack(
-        [np.stack([xx, xy, xz], -1), np.stack([xy, yy, yz], -1), np.stack([xz, yz, zz], -1)], axis=1
-    ) - mean[:, :, None] * mean[:, None, :]
-    values, vectors = np.linalg.eigh(covariance)
-    normal = vectors[:, :, 0]
-    d = -np.einsum("kj,kj->k", normal, mean)
-    flip = d < 0
-    normal[flip] *= -1
-    d[flip] *= -1
-    planes[usable] = np.column_stack([normal, d])
-    rms[usable] = np.sqrt(np.maximum(values[:, 0], 0.0))
-    return planes, rms
 
 
 def plane_rms(moments: np.ndarray, planes: np.ndarray) -> np.ndarray:

@@ -37,6 +37,7 @@ from rangesurf.config import PipelineConfig
 from rangesurf.denoise import denoise_range
 from rangesurf.frame import PinholeProjection, RangeFrame
 from rangesurf.io._common import FormatError, atomic_path
+from rangesurf.io.npz import load_arrays
 from rangesurf.merge import GlobalModel, MergeStep, TSDFVolume
 from rangesurf.mesh import Surface, segment_vertices, triangulate_segments
 from rangesurf.normals import estimate_normals
@@ -328,12 +329,7 @@ class Pipeline:
         import tomllib
 
         path = Path(path)
-        try:
-            archive = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as error:
-            raise FormatError(path, f"not a readable .npz pipeline checkpoint ({error})") from None
-        with archive:
-            arrays = {name: archive[name] for name in archive.files}
+        arrays = load_arrays(path)
         for name in ("pipeline/version", "pipeline/config", "pipeline/counters"):
             if name not in arrays:
                 raise FormatError(path, "missing from the pipeline checkpoint", where=f"field {name!r}")

@@ -99,7 +99,7 @@ def read_npz(path: str | os.PathLike, *, sensor: str | SensorModel | None = None
     """
     path = Path(path)
     sensor = None if sensor is None else get_sensor(sensor)
-    arrays = _load_npz(path)
+    arrays = load_arrays(path)
 
     version = _scalar(path, arrays, "format_version", (np.integer,), default=FORMAT_VERSION)
     if int(version) > FORMAT_VERSION:
@@ -163,7 +163,12 @@ def read_npz(path: str | os.PathLike, *, sensor: str | SensorModel | None = None
     )
 
 
-def _load_npz(path: Path) -> dict[str, np.ndarray]:
+def load_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Every named array of an ``.npz`` file, read without pickles; a `FormatError` for anything else.
+
+    Hardened by fuzzing (see below); also how model and pipeline checkpoints are read.
+    """
+    path = Path(path)
     if path.stat().st_size == 0:
         raise FormatError(path, "empty file; expected a NumPy .npz archive")
     try:

@@ -28,6 +28,7 @@ from numpy.typing import ArrayLike
 
 from rangesurf.frame import check_rigid_transform
 from rangesurf.io._common import FormatError, atomic_path
+from rangesurf.io.npz import load_arrays
 from rangesurf.lod import progressive_order
 from rangesurf.merge.planar import CELL_FIELDS, Observations, PlanarPatch
 from rangesurf.mesh import Surface
@@ -505,12 +506,7 @@ class GlobalModel:
             The file is not a rangesurf model checkpoint (naming the field).
         """
         path = Path(path)
-        try:
-            archive = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as error:
-            raise FormatError(path, f"not a readable .npz model checkpoint ({error})") from None
-        with archive:
-            return cls.from_arrays({name: archive[name] for name in archive.files}, source=path)
+        return cls.from_arrays(load_arrays(path), source=path)
 
     def to_arrays(self, prefix: str = "") -> dict[str, np.ndarray]:
         """The model as named arrays (what `save` writes; ``prefix`` lets it share a file)."""
