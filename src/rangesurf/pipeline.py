@@ -155,7 +155,7 @@ class Pipeline:
     def _stride(self, frame: RangeFrame, distance: np.ndarray) -> int:
         if self.config.merge.stride is not None:
             return self.config.merge.stride
-        # Every frame: a sparser sample than the cell size's (2.5 -> 0.2 ms at 640x480).
+        # Every frame: a sparser sample than the cell size's (2.5 -> 0.4 ms at 640x480).
         footprint = _median_footprint(frame, distance, rows=8, columns=4)
         return max(1, round(self.model.cell_size / footprint)) if footprint > 0 else 1
 
