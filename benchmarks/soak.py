@@ -4,11 +4,15 @@ Run: ``.venv/bin/python benchmarks/soak.py [N_FRAMES]`` (default 10,000); writes
 ``benchmarks/results/soak.md``. The SR-3000 robot circles the arena again and again (drifting odometry),
 so after the first laps the model stops growing; what must stay flat after warm-up is the process's
 resident memory and the pipeline's time per frame. Reported: RSS and the median frame time at frames
-1,000 and N, their growth, and the least-squares slopes from frame 1,000 on.
+1,000 and N, their growth, and the least-squares slopes from frame 1,000 on. RSS is sampled twice:
+as the process holds it, and right after ``malloc_trim(0)`` (glibc hands the heap pages freed by
+temporaries back to the system), which separates memory still in use from the allocator's high-water
+mark.
 """
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
 import os
 import resource
@@ -34,13 +38,19 @@ def rss_mb() -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
+def trimmed_rss_mb() -> float:
+    """RSS after glibc returns the free heap pages (memory in use, not the allocator's high-water mark)."""
+    ctypes.CDLL("libc.so.6").malloc_trim(0)
+    return rss_mb()
+
+
 def main() -> None:
     n_frames = int(sys.argv[1]) if len(sys.argv) > 1 else 10_000
     sensor = get_sensor("sr3000")
     true_poses = simulate.default_trajectory("arena", n_frames, frame_rate=sensor.frame_rate)
     odometry = simulate.noisy_odometry(true_poses, seed=9)
     pipeline = Pipeline()
-    samples = []  # (frame, rss MB, median ms of the last 100 frames)
+    samples = []  # (frame, rss MB, median ms of the last 100 frames, rss MB after malloc_trim)
     window = []
     started = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"):
@@ -49,16 +59,18 @@ def main() -> None:
             result = pipeline.process(dataclasses.replace(frame, pose=odometry[index]))
             window.append(result.timings["total"])
             if (index + 1) % 100 == 0:
-                samples.append((index + 1, rss_mb(), float(np.median(window))))
+                samples.append((index + 1, rss_mb(), float(np.median(window)), trimmed_rss_mb()))
                 window = []
                 if (index + 1) % 1000 == 0:
-                    print(f"frame {index + 1}: RSS {samples[-1][1]:.1f} MB, {samples[-1][2]:.2f} ms/frame, "
+                    print(f"frame {index + 1}: RSS {samples[-1][1]:.1f} MB ({samples[-1][3]:.1f} trimmed), "
+                          f"{samples[-1][2]:.2f} ms/frame, "
                           f"{pipeline.model.n_vertices} model vertices", flush=True)
     elapsed = time.perf_counter() - started
     table = np.array(samples)
     after = table[table[:, 0] >= min(1000, n_frames // 2)]
     first, last = after[0], after[-1]
     rss_slope = np.polyfit(after[:, 0], after[:, 1], 1)[0] * 1000
+    trimmed_slope = np.polyfit(after[:, 0], after[:, 3], 1)[0] * 1000
     time_slope = np.polyfit(after[:, 0], after[:, 2], 1)[0] * 1000
     lines = [
         f"Machine: {machine_description()}. Command: `.venv/bin/python benchmarks/soak.py {n_frames}`.", "",
@@ -67,9 +79,12 @@ def main() -> None:
         "| measure | at frame {:d} | at frame {:d} | growth | slope per 1,000 frames |".format(int(first[0]), int(last[0])),
         "|---|---:|---:|---:|---:|",
         f"| resident memory (MB) | {first[1]:.1f} | {last[1]:.1f} | {100 * (last[1] / first[1] - 1):+.2f} % | {rss_slope:+.3f} MB |",
+        f"| resident memory after malloc_trim (MB) | {first[3]:.1f} | {last[3]:.1f} | {100 * (last[3] / first[3] - 1):+.2f} % "
+        f"| {trimmed_slope:+.3f} MB |",
         f"| time per frame (ms) | {first[2]:.2f} | {last[2]:.2f} | {100 * (last[2] / first[2] - 1):+.2f} % | {time_slope:+.4f} ms |",
         "", f"Peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB; model at the end: "
-        f"{pipeline.model.n_vertices} vertices in {len(pipeline.model.patches)} patches; late frames {pipeline.late}.",
+        f"{pipeline.model.n_vertices} vertices in {len(pipeline.model.patches)} patches; {pipeline.model.cells_carved} cells "
+        f"carved as seen-through free space; late frames {pipeline.late}.",
         "", f"Load average at the end: {os.getloadavg()[0]:.2f}.",
     ]
     write_results(Path(__file__).parent / "results", "soak.md", lines)

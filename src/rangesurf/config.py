@@ -87,7 +87,10 @@ class MergeSettings:
     ``volume``: the volumetric (TSDF) path, `rangesurf.merge.TSDFVolume`:
     "off", "unsegmented" (the pixels in no planar segment: objects that are
     not planes) or "all" (every pixel: a scanned object like the bunny);
-    ``voxel_size`` None: the cell size.
+    ``voxel_size`` None: the cell size. ``carve_every``: every n-th frame
+    removes the model's cells it sees through (`GlobalModel.carve`: copies
+    built while the pose had slipped, objects that moved away); 0 switches
+    it off.
     """
 
     cell_size: float | None = None
@@ -99,6 +102,7 @@ class MergeSettings:
     stride: int | None = None
     volume: str = "off"
     voxel_size: float | None = None
+    carve_every: int = 10
 
 
 @dataclass(frozen=True)
@@ -159,8 +163,8 @@ class PipelineConfig:
             value = self._get(name)
             if value is not None and value < 1:
                 raise ConfigError(f"config: {name} must be >= 1 or unset, got {value}")
-        for name in ("register.keyframe_distance", "register.keyframe_angle", "register.align_to_model_every", "run.remesh_every", "run.checkpoint_every",
-                     "merge.bridge"):
+        for name in ("register.keyframe_distance", "register.keyframe_angle", "register.align_to_model_every",
+                     "merge.carve_every", "run.remesh_every", "run.checkpoint_every", "merge.bridge"):
             if self._get(name) < 0:
                 raise ConfigError(f"config: {name} must be >= 0, got {self._get(name)}")
         if self.merge.min_overlap < 1:

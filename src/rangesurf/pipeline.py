@@ -237,6 +237,10 @@ class Pipeline:
         # The pose's world covariance (drift included): the model is compared with the world.
         merge_step = self.model.add_frame(vertex_sets, tracked.T_world_sensor, covariance=tracked.covariance,
                                           timestamp=frame.timestamp)
+        every = self.config.merge.carve_every
+        if every and projection is not None and self.frames % every == 0:
+            # Free space: cells this frame sees through (a copy built while the pose had slipped) go.
+            self.model.carve(smooth, projection, tracked.T_world_sensor, range_sigma=sigma, covariance=tracked.covariance)
         lap("merge")
 
         if self.config.merge.volume != "off":

@@ -5,6 +5,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from rangesurf import simulate
+from rangesurf.frame import PinholeProjection
 from rangesurf.io import FormatError
 from rangesurf.merge import GlobalModel
 from rangesurf.mesh import Surface, triangulate_in_plane, triangulate_segments
@@ -278,3 +279,100 @@ def test_touching_counts_points_near_occupied_cells():
         inside = (columns >= 0) & (rows >= 0) & (columns < image.shape[1]) & (rows < image.shape[0])
         expected = int(image[rows[inside], columns[inside]].sum())
         assert expected > 50 and patch.touching(probe, reach) == expected
+
+
+# ----------------------------------------------------------------------
+# Free-space carving.
+# ----------------------------------------------------------------------
+
+CAMERA = PinholeProjection(fx=200.0, fy=200.0, cx=88.0, cy=72.0)
+
+
+def render(rectangles, shape=(144, 176)):
+    """Ranges (along each pixel's ray) of fronto-parallel rectangles (z, x0, x1, y0, y1) seen from the origin."""
+    directions = CAMERA.directions(*shape)
+    ranges = np.full(shape, np.inf)
+    for z, x0, x1, y0, y1 in rectangles:
+        x, y = directions[..., 0] * z, directions[..., 1] * z
+        inside = (x >= x0) & (x <= x1) & (y >= y0) & (y <= y1)
+        ranges = np.where(inside, np.minimum(ranges, z * np.linalg.norm(directions, axis=-1)), ranges)
+    return np.where(np.isfinite(ranges), ranges, np.nan)
+
+
+def test_carving_removes_a_copy_the_sensor_sees_through_and_keeps_the_real_wall():
+    """A wall's copy 30 cm in front of it (built while the pose was off) goes after three checks that see the wall."""
+    model = GlobalModel(cell_size=0.02, max_plane_distance=0.1)
+    model.add_frame([wall()], np.eye(4))
+    model.add_frame([wall(offset=-0.3)], np.eye(4))
+    real, copy = model.patches
+    assert copy.n_cells == real.n_cells == 1200
+    ranges = render([(2.0, 0.0, 0.78, 0.0, 0.58)])
+    for check in range(3):
+        removed = model.carve(ranges, CAMERA, np.eye(4), range_sigma=0.005)
+        assert (removed > 0) == (check == 2)
+    assert model.patches[0] is real and real.n_cells == 1200
+    assert model.cells_carved == removed == 1200 - copy.n_cells
+    # What is left of the copy is what no pixel looked through: cells whose rays (or their 3x3 pixels')
+    # pass beside the wall.
+    u, v, _ = copy.cell_means()
+    x, y = (copy.origin + np.column_stack([u, v, np.zeros_like(u)]) @ copy.axes)[:, :2].T * 2.0 / 1.7
+    behind = (x > 0.02) & (x < 0.78 - 0.02) & (y > 0.02) & (y < 0.58 - 0.02)
+    assert not behind.any() and removed > 700
+
+
+def test_carving_needs_consecutive_unconfirmed_checks_and_a_certain_pose():
+    model = GlobalModel(cell_size=0.02, max_plane_distance=0.1)
+    model.add_frame([wall()], np.eye(4))
+    model.add_frame([wall(offset=-0.3)], np.eye(4))
+    copy = model.patches[1]
+    ranges = render([(2.0, 0.0, 0.78, 0.0, 0.58)])
+    for _ in range(2):
+        model.carve(ranges, CAMERA, np.eye(4), range_sigma=0.005)
+    # Seen again where it is: the count of checks in a row starts over.
+    model.add_frame([wall(offset=-0.3)], np.eye(4))
+    for _ in range(2):
+        assert model.carve(ranges, CAMERA, np.eye(4), range_sigma=0.005) == 0
+    assert copy.n_cells == 1200
+    # A pose uncertain by 20 cm along the view proves nothing about a 30 cm gap.
+    uncertain = np.diag([0, 0, 0, 0, 0, 0.2**2])
+    for _ in range(5):
+        assert model.carve(ranges, CAMERA, np.eye(4), range_sigma=0.005, covariance=uncertain) == 0
+    # Nor does a frame without readings there.
+    assert model.carve(np.full_like(ranges, np.nan), CAMERA, np.eye(4), range_sigma=0.005) == 0
+    assert copy.n_cells == 1200
+
+
+def test_carving_does_not_erode_a_surface_in_front_of_another():
+    """A box face 50 cm in front of the wall: the wall behind it shows around its edges, for many checks."""
+    model = GlobalModel(cell_size=0.02, max_plane_distance=0.1)
+    model.add_frame([wall()], np.eye(4))
+    box = wall(offset=-0.5, size=(10, 10))
+    model.add_frame([box], np.eye(4))
+    ranges = render([(2.0, 0.0, 0.78, 0.0, 0.58), (1.5, 0.0, 0.19, 0.0, 0.19)])
+    for _ in range(10):
+        assert model.carve(ranges, CAMERA, np.eye(4), range_sigma=0.005) == 0
+    assert [patch.n_cells for patch in model.patches] == [1200, 100]
+
+
+def test_carving_evidence_survives_a_checkpoint(tmp_path):
+    """Two checks, save, load, one more check: the copy goes, as it does without the restart."""
+    model = GlobalModel(cell_size=0.02, max_plane_distance=0.1)
+    model.add_frame([wall()], np.eye(4))
+    model.add_frame([wall(offset=-0.3)], np.eye(4))
+    ranges = render([(2.0, 0.0, 0.78, 0.0, 0.58)])
+    for _ in range(2):
+        model.carve(ranges, CAMERA, np.eye(4), range_sigma=0.005)
+    resumed = GlobalModel.load(model.save(tmp_path / "model.npz"))
+    assert resumed.carve(ranges, CAMERA, np.eye(4), range_sigma=0.005) == model.carve(ranges, CAMERA, np.eye(4), range_sigma=0.005) > 0
+    assert resumed.n_vertices == model.n_vertices and resumed.cells_carved == model.cells_carved
+
+
+def test_carving_rejects_what_it_cannot_use():
+    model = GlobalModel(cell_size=0.02)
+    model.add_frame([wall()], np.eye(4))
+    with pytest.raises(ValueError, match="ranges must be an"):
+        model.carve(np.zeros(5), CAMERA, np.eye(4), range_sigma=0.005)
+    with pytest.raises(TypeError, match="PinholeProjection"):
+        model.carve(np.zeros((4, 4)), None, np.eye(4), range_sigma=0.005)
+    with pytest.raises(ValueError, match="covariance"):
+        model.carve(np.zeros((4, 4)), CAMERA, np.eye(4), range_sigma=0.005, covariance=np.full((6, 6), np.nan))

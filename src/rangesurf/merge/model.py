@@ -19,25 +19,27 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import asdict, dataclass
+from dataclasses import astuple, dataclass, fields
 from pathlib import Path
 
 import numba
 import numpy as np
 from numpy.typing import ArrayLike
 
-from rangesurf.frame import check_rigid_transform
+from rangesurf._growing import GrowingArray
+from rangesurf.frame import PinholeProjection, check_rigid_transform
 from rangesurf.io._common import FormatError, atomic_path
 from rangesurf.io.npz import load_arrays
 from rangesurf.lod import progressive_order
-from rangesurf.merge.planar import CELL_FIELDS, Observations, PlanarPatch
+from rangesurf.merge.planar import CELL_FIELDS, Observations, PlanarPatch, variance_along
 from rangesurf.mesh import Surface
 from rangesurf.register import _exp
 
 __all__ = ["GlobalModel", "MergeStep", "NONPLANAR_MODES"]
 
 NONPLANAR_MODES = ("keep", "drop")
-_FORMAT_VERSION = 1
+# 2: per-frame records as arrays (the history no longer JSON), cells' free-space misses.
+_FORMAT_VERSION = 2
 _UNCONSTRAINED_VARIANCE = 1e4
 # Model alignment: surfaces smaller than this are not used; points per surface; how many independent points
 # one plane's points count as; the largest squared Mahalanobis distance of a correction (chi-square, 6
@@ -178,9 +180,11 @@ class GlobalModel:
         self.nonplanar = nonplanar
         self.patches: list[PlanarPatch] = []
         self.others: list[Surface] = []
-        self.poses: list[np.ndarray] = []
-        self.timestamps: list[float] = []
-        self.history: list[MergeStep] = []
+        # Per-frame records as arrays (a list of objects would grow the memory of a long run).
+        self._poses = GrowingArray((4, 4))
+        self._timestamps = GrowingArray()
+        self._history = GrowingArray((len(fields(MergeStep)),), np.int64)
+        self.cells_carved = 0
         # id(patch) -> (patch revision, with LOD order, mesh)
         self._meshes: dict[int, tuple[int, bool, Surface]] = {}
 
@@ -190,7 +194,22 @@ class GlobalModel:
 
     @property
     def n_frames(self) -> int:
-        return len(self.poses)
+        return len(self._poses)
+
+    @property
+    def poses(self) -> np.ndarray:
+        """``T_world_sensor`` of the merged frames, (N, 4, 4)."""
+        return self._poses.values
+
+    @property
+    def timestamps(self) -> np.ndarray:
+        """Seconds (or frame counts) of the merged frames, (N,)."""
+        return self._timestamps.values
+
+    @property
+    def history(self) -> list[MergeStep]:
+        """What `add_frame` did with each frame."""
+        return [MergeStep(*(int(value) for value in row)) for row in self._history.values]
 
     @property
     def n_vertices(self) -> int:
@@ -199,7 +218,7 @@ class GlobalModel:
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Timestamps (N,) and ``T_world_sensor`` poses (N, 4, 4) of the merged frames."""
-        return np.asarray(self.timestamps, np.float64), np.asarray(self.poses, np.float64).reshape(-1, 4, 4)
+        return self.timestamps.copy(), self.poses.copy()
 
     # ------------------------------------------------------------------
     # Merging.
@@ -266,10 +285,10 @@ class GlobalModel:
             plane = np.r_[normal, surface.plane[3] - normal @ translation] / scale
             observations = _observations(surface, points, plane[:3], pose_covariance)
             self._merge(plane, observations, frame, counts)
-        self.poses.append(pose.copy())
-        self.timestamps.append(float(frame if timestamp is None else timestamp))
+        self._poses.append(pose)
+        self._timestamps.append(float(frame if timestamp is None else timestamp))
         step = MergeStep(frame=frame, **counts)
-        self.history.append(step)
+        self._history.append(astuple(step))
         return step
 
     def align(self, surfaces: list[Surface], T_world_sensor: ArrayLike, covariance: ArrayLike) -> ModelAlignment:
@@ -353,6 +372,62 @@ class GlobalModel:
             return ModelAlignment(pose.copy(), prior.copy(), len(pairs), distance, False)
         corrected = _exp(delta) @ pose
         return ModelAlignment(corrected, np.linalg.inv(information), len(pairs), distance, True)
+
+    def carve(self, ranges: ArrayLike, projection: PinholeProjection, T_world_sensor: ArrayLike, *,
+              range_sigma: ArrayLike, covariance: ArrayLike | None = None, sigmas: float = 3.0, checks: int = 3) -> int:
+        """Remove the cells a frame sees through (free-space carving); returns how many were removed.
+
+        A wall built while the pose had slipped stands in front of or beside
+        the real one; once the pose is right again (loop closure), the
+        sensor looks through it at the real wall. Every cell in view is
+        checked against the frame's ranges (`PlanarPatch.seen_through`): one
+        seen through in ``checks`` checks in a row, farther than ``sigmas``
+        standard deviations of its own, the pose's and the range's
+        uncertainty, with nothing fused into it in between, is removed, and
+        a patch left without cells is dropped. So the model does not keep
+        (or grow by) copies of what it already has, nor objects that have
+        moved away. A copy hidden behind the real surface is never seen
+        through and stays.
+
+        Parameters
+        ----------
+        ranges : (H, W) array
+            The frame's (denoised) ranges along the pixel rays, metres; NaN
+            where there is no reading.
+        projection : PinholeProjection
+            The frame's projection.
+        T_world_sensor : (4, 4) array
+            The frame's pose (after registration).
+        range_sigma : (H, W) array or float
+            Range noise sigma, metres.
+        covariance : (6, 6) array, optional
+            The pose's covariance (as for `add_frame`); None: exact.
+        sigmas, checks : float, int
+            The evidence a removal takes.
+        """
+        ranges = np.asarray(ranges)
+        if ranges.ndim != 2 or ranges.dtype.kind != "f":
+            raise ValueError(f"ranges must be an (H, W) float image, got {ranges.dtype} of shape {ranges.shape}")
+        if not isinstance(projection, PinholeProjection):
+            raise TypeError(f"carve needs a PinholeProjection, got {type(projection).__name__}")
+        sigma = np.broadcast_to(np.asarray(range_sigma, np.float64), ranges.shape)
+        pose = check_rigid_transform(T_world_sensor, "T_world_sensor")
+        pose_covariance = np.zeros((6, 6)) if covariance is None else np.asarray(covariance, np.float64)
+        if pose_covariance.shape != (6, 6) or not np.isfinite(pose_covariance).all():
+            # An unconstrained direction (inf) leaves the pose unable to prove anything seen through.
+            if pose_covariance.shape == (6, 6) and not np.isnan(pose_covariance).any():
+                return 0
+            raise ValueError(f"covariance must be a 6x6 matrix without NaN, got shape {pose_covariance.shape}")
+        T_sensor_world = np.linalg.inv(pose)
+        intrinsics = (projection.fx, projection.fy, projection.cx, projection.cy)
+        removed = 0
+        for patch in self.patches:
+            removed += patch.seen_through(ranges, sigma, T_sensor_world, intrinsics, pose_covariance,
+                                          sigmas=sigmas, checks=checks)
+        if removed:
+            self.patches = [patch for patch in self.patches if patch.n_cells]
+            self.cells_carved += removed
+        return removed
 
     def _reach(self, variance: np.ndarray) -> float:
         """How far (metres) observations with these variances may lie from a patch's plane and still be on it."""
@@ -517,9 +592,10 @@ class GlobalModel:
         arrays: dict[str, np.ndarray] = {
             "format_version": np.array(_FORMAT_VERSION),
             "settings": np.array(json.dumps(settings)),
-            "history": np.array(json.dumps([asdict(step) for step in self.history])),
-            "poses": np.asarray(self.poses, np.float64).reshape(-1, 4, 4),
-            "timestamps": np.asarray(self.timestamps, np.float64),
+            "history": self._history.values.copy(),
+            "poses": self.poses.copy(),
+            "timestamps": self.timestamps.copy(),
+            "cells_carved": np.array(self.cells_carved),
             "patch_origins": np.asarray([patch.origin for patch in self.patches], np.float64).reshape(-1, 3),
             "patch_axes": np.asarray([patch.axes for patch in self.patches], np.float64).reshape(-1, 3, 3),
             "patch_cell_sizes": np.asarray([patch.cell_size for patch in self.patches], np.float64),
@@ -528,11 +604,12 @@ class GlobalModel:
             "patch_frame_counts": np.cumsum([0] + [len(patch.frames) for patch in self.patches]).astype(np.int64),
             "cell_coordinates": np.concatenate([patch.coordinates for patch in self.patches]).astype(np.int32)
             if self.patches else np.zeros((0, 2), np.int32),
-            "patch_frames": _concatenate([np.asarray(patch.frames, np.int64) for patch in self.patches], np.int64),
+            "patch_frames": _concatenate([patch.frames for patch in self.patches], np.int64),
             "n_others": np.array(len(self.others)),
         }
         for name in CELL_FIELDS:
             arrays[f"cells_{name}"] = _concatenate([patch.sums[name] for patch in self.patches], np.float64)
+        arrays["cells_misses"] = _concatenate([patch.misses for patch in self.patches], np.int32)
         for index, surface in enumerate(self.others):
             for name in ("vertices", "faces", "normals", "pixels", "plane"):
                 arrays[f"other{index}_{name}"] = getattr(surface, name)
@@ -555,9 +632,19 @@ class GlobalModel:
             raise FormatError(source, f"model format version {version}, this rangesurf reads {_FORMAT_VERSION}",
                               where=f"field {prefix + 'format_version'!r}")
         model = cls(**json.loads(str(field("settings"))))
-        model.poses = [pose for pose in field("poses")]
-        model.timestamps = field("timestamps").tolist()
-        model.history = [MergeStep(**step) for step in json.loads(str(field("history")))]
+        poses, timestamps, history = field("poses"), field("timestamps"), field("history")
+        width = len(fields(MergeStep))
+        if poses.ndim != 3 or poses.shape[1:] != (4, 4) or history.ndim != 2 or history.shape[1] != width:
+            raise FormatError(source, f"poses {poses.shape} and history {history.shape} are not (N, 4, 4) and (N, {width})",
+                              where=f"field {prefix + 'poses'!r}")
+        if not (len(timestamps) == len(poses) == len(history)):
+            raise FormatError(source, f"{len(poses)} poses, {len(timestamps)} timestamps and "
+                              f"{len(history)} history entries disagree", where=f"field {prefix + 'poses'!r}")
+        model._poses.extend(poses)
+        model._timestamps.extend(timestamps)
+        model._history.extend(history)
+        model.cells_carved = int(field("cells_carved"))
+        misses = field("cells_misses")
         cells, frame_counts = field("patch_cells"), field("patch_frame_counts")
         coordinates, frames = field("cell_coordinates"), field("patch_frames")
         sums = {name: field(f"cells_{name}") for name in CELL_FIELDS}
@@ -566,8 +653,8 @@ class GlobalModel:
             cell_slice = slice(int(cells[index]), int(cells[index + 1]))
             model.patches.append(PlanarPatch(
                 origin=origin, axes=axes, cell_size=float(cell_size), coordinates=coordinates[cell_slice], moments=moments,
-                sums={name: values[cell_slice].copy() for name, values in sums.items()},
-                frames=frames[int(frame_counts[index]) : int(frame_counts[index + 1])].tolist(),
+                sums={name: values[cell_slice].copy() for name, values in sums.items()}, misses=misses[cell_slice],
+                frames=frames[int(frame_counts[index]) : int(frame_counts[index + 1])],
             ))
         for index in range(int(field("n_others"))):
             uncertainty = {level: field(f"other{index}_uncertainty_{level}") for level in ("UL1", "UL2", "UL3", "UL4")
@@ -576,9 +663,6 @@ class GlobalModel:
                 *(field(f"other{index}_{name}") for name in ("vertices", "faces", "normals", "pixels")),
                 plane=field(f"other{index}_plane"), segment=int(field(f"other{index}_segment")), uncertainty=uncertainty,
             ))
-        if len(model.timestamps) != len(model.poses) or len(model.history) != len(model.poses):
-            raise FormatError(source, f"{len(model.poses)} poses, {len(model.timestamps)} timestamps and "
-                              f"{len(model.history)} history entries disagree", where=f"field {prefix + 'poses'!r}")
         return model
 
 
@@ -636,25 +720,10 @@ def _moved(surface: Surface, points: np.ndarray, rotation: np.ndarray) -> Surfac
 
 @numba.njit(**_JIT)
 def _registration_variance(points, normal, covariance):  # pragma: no cover - compiled
-    """Per point, the variance along ``normal`` that a pose covariance (rotation, translation) gives it.
-
-    A left perturbation (w, t) moves p by w x p + t; along n that is
-    w . a + t . n with a = p x n, so the variance is [a, n] S [a, n]'.
-    """
-    nx, ny, nz = normal[0], normal[1], normal[2]
-    jacobian = np.empty(6)
-    jacobian[3], jacobian[4], jacobian[5] = nx, ny, nz
+    """Per point, the variance along ``normal`` that a pose covariance (rotation, translation) gives it."""
     variance = np.empty(points.shape[0])
     for k in range(points.shape[0]):
-        x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        jacobian[0], jacobian[1], jacobian[2] = y * nz - z * ny, z * nx - x * nz, x * ny - y * nx
-        total = 0.0
-        for i in range(6):
-            row = 0.0
-            for j in range(6):
-                row += covariance[i, j] * jacobian[j]
-            total += jacobian[i] * row
-        variance[k] = total
+        variance[k] = variance_along(points[k, 0], points[k, 1], points[k, 2], normal[0], normal[1], normal[2], covariance)
     return variance
 
 

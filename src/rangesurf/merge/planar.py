@@ -39,6 +39,7 @@ import cv2
 import numba
 import numpy as np
 
+from rangesurf._growing import GrowingArray
 from rangesurf._hashgrid import empty_table, insert, lookup, rehash
 from rangesurf.mesh import Surface, _grid_faces
 
@@ -100,8 +101,13 @@ class PlanarPatch:
     sums : dict of str -> (K,) float64
         The per-cell sums of `CELL_FIELDS` (the columns of one
         ``(K, len(CELL_FIELDS))`` array, `cells`; ``sums`` gives views).
-    frames : list of int
-        Frames that contributed, in order.
+    frames : (F,) int64
+        Frames that contributed, in order (a list is accepted).
+    moments : (9,) float64, optional
+        Plane-fit sums of everything fused (from the cell means when omitted).
+    misses : (K,) int32, optional
+        Per cell, the free-space checks in a row that saw through it
+        (`seen_through`); zeros when omitted.
     """
 
     origin: np.ndarray
@@ -109,8 +115,9 @@ class PlanarPatch:
     cell_size: float
     coordinates: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int32))
     sums: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
-    frames: list[int] = field(default_factory=list)
+    frames: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     moments: np.ndarray | None = None
+    misses: np.ndarray | None = field(default=None, repr=False, compare=False)
     # Bumped by every change of the cells, so that meshes and plane fits made from them can be cached.
     revision: int = field(default=0, compare=False)
     _plane: tuple[int, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
@@ -136,6 +143,13 @@ class PlanarPatch:
         rehash(self._table_keys, self._table_slots, self._coords, count)
         self._stamps = np.zeros(capacity, np.int64)
         self._stamp = 0
+        self._frames = GrowingArray(dtype=np.int64, rows=self.frames)
+        self._misses = np.zeros(capacity, np.int32)
+        if self.misses is not None:
+            misses = np.asarray(self.misses, np.int32).reshape(-1)
+            if len(misses) != count:
+                raise ValueError(f"patch misses has {len(misses)} values for {count} cells")
+            self._misses[:count] = misses
         self._views()
         if self.moments is None:
             # Weighted sums (w, wu, wv, wh, wuu, wuv, wvv, wuh, wvh) of everything fused, for the plane
@@ -150,6 +164,8 @@ class PlanarPatch:
         """Point `coordinates`, `cells` and `sums` at the used rows (after they move or grow)."""
         self.coordinates = self._coords[: self._count, :2]
         self.cells = self._cells[: self._count]
+        self.misses = self._misses[: self._count]
+        self.frames = self._frames.values
         self.sums = {name: self.cells[:, index] for index, name in enumerate(CELL_FIELDS)}
 
     def _grow(self, needed: int) -> None:
@@ -158,7 +174,7 @@ class PlanarPatch:
             capacity *= 2
         if capacity == len(self._coords):
             return
-        for name in ("_coords", "_cells", "_stamps"):
+        for name in ("_coords", "_cells", "_stamps", "_misses"):
             old = getattr(self, name)
             grown = np.zeros((capacity,) + old.shape[1:], old.dtype)
             grown[: self._count] = old[: self._count]
@@ -287,11 +303,13 @@ class PlanarPatch:
         updated = added = 0
         start = 0
         while start < count:
-            # Room for every remaining point to open a cell, with the table at most half full.
-            self._grow(self._count + count - start)
+            # The kernel stops when the storage is full; it doubles then (not before: a large patch
+            # seen again needs few new cells, and room for every point would double it needlessly).
+            self._grow(self._count + 1)
             start, self._count, new_updated, new_added = _fuse_points(
                 points, noise, fit, registration, self.origin, self.axes, self.cell_size, start, self._coords,
-                self._cells, self._count, self._table_keys, self._table_slots, self._stamps, self._stamp, self.moments)
+                self._cells, self._count, self._table_keys, self._table_slots, self._stamps, self._stamp, self._misses,
+                self.moments)
             updated += new_updated
             added += new_added
         return self._fused(frame, updated, added)
@@ -314,7 +332,8 @@ class PlanarPatch:
                              hh=weight * local[:, 2] ** 2 + spread)
         self.moments += _moments(weight, local[:, 0], local[:, 1], local[:, 2])
         result = self._accumulate(local, contributions, frame)
-        self.frames = sorted(set(self.frames) | set(other.frames))
+        self._frames = GrowingArray(dtype=np.int64, rows=np.union1d(self.frames, other.frames))
+        self._views()
         return result
 
     def _accumulate(self, local: np.ndarray, contributions: dict[str, np.ndarray], frame: int) -> tuple[int, int]:
@@ -326,22 +345,91 @@ class PlanarPatch:
         updated = added = 0
         start = 0
         while start < len(columns):
-            # Room for every remaining point to open a cell, with the table at most half full.
-            self._grow(self._count + len(columns) - start)
+            # As in `fuse`: the storage doubles when the kernel finds it full.
+            self._grow(self._count + 1)
             start, self._count, new_updated, new_added = _accumulate_cells(
                 columns, rows, table, start, self._coords, self._cells, self._count, self._table_keys,
-                self._table_slots, self._stamps, self._stamp)
+                self._table_slots, self._stamps, self._stamp, self._misses)
             updated += new_updated
             added += new_added
         return self._fused(frame, updated, added)
 
     def _fused(self, frame: int, updated: int, added: int) -> tuple[int, int]:
-        """Book-keeping after cells changed: views, the frame list, the revision."""
+        """Book-keeping after cells changed: the frame list, views, the revision."""
+        if not len(self._frames) or self._frames.values[-1] != frame:
+            self._frames.append(frame)
         self._views()
-        if not self.frames or self.frames[-1] != frame:
-            self.frames.append(frame)
         self.revision += 1
         return updated, added
+
+    # ------------------------------------------------------------------
+    # Free space.
+    # ------------------------------------------------------------------
+
+    def seen_through(self, ranges: np.ndarray, range_sigma: np.ndarray, T_sensor_world: np.ndarray,
+                     intrinsics: tuple[float, float, float, float], pose_covariance: np.ndarray, *,
+                     sigmas: float = 3.0, checks: int = 3) -> int:
+        """Check the cells against one frame's ranges; remove those it and the checks before it saw through.
+
+        A cell is seen through when every pixel around its projection
+        measures a surface farther than the cell, by more than ``sigmas``
+        standard deviations of the cell's fused position, the pose's
+        uncertainty and the range noise (all along the cell's normal: at a
+        grazing view the same gap proves less) and by more than two cells.
+        A cell seen through in ``misses`` checks in a row, with no
+        observation fused into it and no check finding the surface where the
+        cell is in between, is removed: free space a well-placed sensor
+        looked through (a copy of a wall built while the pose had slipped, or
+        an object that has moved away).
+
+        Parameters
+        ----------
+        ranges, range_sigma : (H, W) float
+            The frame's ranges along each pixel's ray (NaN: no reading) and
+            their noise sigmas, metres.
+        T_sensor_world : (4, 4) array
+            World to sensor.
+        intrinsics : (fx, fy, cx, cy)
+            The pinhole projection (`rangesurf.frame.PinholeProjection`).
+        pose_covariance : (6, 6) array
+            The frame pose's covariance (rotation vector, translation; left
+            perturbation, world), finite.
+
+        Returns
+        -------
+        int
+            Cells removed.
+        """
+        if self._count == 0:
+            return 0
+        rotation = np.ascontiguousarray(T_sensor_world[:3, :3], np.float64)
+        translation = np.ascontiguousarray(T_sensor_world[:3, 3], np.float64)
+        fx, fy, cx, cy = (float(value) for value in intrinsics)
+        removed = _check_seen_through(self.origin, self.axes, self._cells, self._count, self._misses, rotation,
+                                      translation, fx, fy, cx, cy, ranges, range_sigma, pose_covariance,
+                                      float(sigmas), 2.0 * self.cell_size, int(checks))
+        if removed:
+            self.remove(self.misses >= checks)
+        return removed
+
+    def remove(self, cells: np.ndarray) -> None:
+        """Drop the cells a boolean mask (K,) selects, and their share of the plane-fit moments."""
+        cells = np.asarray(cells, bool)
+        if not cells.any():
+            return
+        u, v, h = self.cell_means()
+        self.moments -= _moments(self.sums["weight"][cells], u[cells], v[cells], h[cells])
+        keep = ~cells
+        count = int(keep.sum())
+        for name in ("_coords", "_cells", "_stamps", "_misses"):
+            array = getattr(self, name)
+            array[:count] = array[: self._count][keep]
+            array[count : self._count] = 0
+        self._count = count
+        self._table_keys, self._table_slots = empty_table(len(self._table_slots))
+        rehash(self._table_keys, self._table_slots, self._coords, self._count)
+        self._views()
+        self.revision += 1
 
     # ------------------------------------------------------------------
     # Mesh.
@@ -457,7 +545,7 @@ def _touching(points, origin, axes, cell_size, reach, table_keys, table_slots): 
 
 @numba.njit(**_JIT)
 def _fuse_points(points, noise, fit, registration, origin, axes, cell_size, start, coords, cells, count, table_keys,
-                 table_slots, stamps, stamp, moments):  # pragma: no cover - compiled
+                 table_slots, stamps, stamp, misses, moments):  # pragma: no cover - compiled
     """`PlanarPatch.fuse` from point ``start`` on, in one pass: each point into the patch frame, its weight
     1 / (total variance), its sums (the `CELL_FIELDS`) into its cell and the patch's plane-fit moments.
 
@@ -485,6 +573,7 @@ def _fuse_points(points, noise, fit, registration, origin, axes, cell_size, star
         elif stamps[slot] != stamp:
             stamps[slot] = stamp
             updated += 1
+        misses[slot] = 0
         weight = 1.0 / max(noise[k] + fit[k] + registration[k], 1e-12)
         wu, wv, wh = weight * u, weight * v, weight * h
         cells[slot, 0] += weight
@@ -510,7 +599,8 @@ def _fuse_points(points, noise, fit, registration, origin, axes, cell_size, star
 
 
 @numba.njit(**_JIT)
-def _accumulate_cells(columns, rows, table, start, coords, cells, count, table_keys, table_slots, stamps, stamp):  # pragma: no cover - compiled
+def _accumulate_cells(columns, rows, table, start, coords, cells, count, table_keys, table_slots, stamps, stamp,
+                      misses):  # pragma: no cover - compiled
     """Add rows of ``table`` into the cells at (column, row), opening cells as needed, from point ``start``.
 
     Stops early (returning where) when the storage is full; returns (next
@@ -534,6 +624,80 @@ def _accumulate_cells(columns, rows, table, start, coords, cells, count, table_k
         elif stamps[slot] != stamp:
             stamps[slot] = stamp
             updated += 1
+        misses[slot] = 0
         for f in range(fields):
             cells[slot, f] += table[k, f]
     return columns.shape[0], count, updated, added
+
+
+@numba.njit(**_JIT)
+def variance_along(x, y, z, nx, ny, nz, covariance):  # pragma: no cover - compiled
+    """Variance along the normal n of the world point p that a pose covariance (rotation, translation) gives.
+
+    A left perturbation (w, t) moves p by w x p + t; along n that is
+    w . a + t . n with a = p x n, so the variance is [a, n] S [a, n]'.
+    """
+    jacobian = (y * nz - z * ny, z * nx - x * nz, x * ny - y * nx, nx, ny, nz)
+    total = 0.0
+    for i in range(6):
+        row = 0.0
+        for j in range(6):
+            row += covariance[i, j] * jacobian[j]
+        total += jacobian[i] * row
+    return total
+
+
+@numba.njit(**_JIT)
+def _check_seen_through(origin, axes, cells, count, misses, rotation, translation, fx, fy, cx, cy, ranges, range_sigma,
+                        covariance, sigmas, floor, limit):  # pragma: no cover - compiled
+    """`PlanarPatch.seen_through`'s test of every cell: updates ``misses``, returns how many reached ``limit``."""
+    height, width = ranges.shape
+    # The patch normal in the sensor frame (for the view angle) and in the world (for the pose's share).
+    nx, ny, nz = axes[2, 0], axes[2, 1], axes[2, 2]
+    snx = rotation[0, 0] * nx + rotation[0, 1] * ny + rotation[0, 2] * nz
+    sny = rotation[1, 0] * nx + rotation[1, 1] * ny + rotation[1, 2] * nz
+    snz = rotation[2, 0] * nx + rotation[2, 1] * ny + rotation[2, 2] * nz
+    reached = 0
+    for slot in range(count):
+        weight = cells[slot, 0]
+        u, v, h = cells[slot, 1] / weight, cells[slot, 2] / weight, cells[slot, 3] / weight
+        wx = origin[0] + u * axes[0, 0] + v * axes[1, 0] + h * axes[2, 0]
+        wy = origin[1] + u * axes[0, 1] + v * axes[1, 1] + h * axes[2, 1]
+        wz = origin[2] + u * axes[0, 2] + v * axes[1, 2] + h * axes[2, 2]
+        x = rotation[0, 0] * wx + rotation[0, 1] * wy + rotation[0, 2] * wz + translation[0]
+        y = rotation[1, 0] * wx + rotation[1, 1] * wy + rotation[1, 2] * wz + translation[1]
+        z = rotation[2, 0] * wx + rotation[2, 1] * wy + rotation[2, 2] * wz + translation[2]
+        if z <= 0.0:
+            continue
+        column = int(np.floor(fx * x / z + cx + 0.5))
+        row = int(np.floor(fy * y / z + cy + 0.5))
+        if column < 1 or row < 1 or column >= width - 1 or row >= height - 1:
+            continue
+        # The nearest surface around the projection: a cell at a silhouette, beside which the sensor sees
+        # the background, has its own surface among the neighbours and is not seen through.
+        nearest = np.inf
+        read = True
+        for dr in range(-1, 2):
+            for dc in range(-1, 2):
+                measured = ranges[row + dr, column + dc]
+                if measured != measured:
+                    read = False  # no reading: no evidence
+                elif measured < nearest:
+                    nearest = measured
+        if not read:
+            continue
+        expected = np.sqrt(x * x + y * y + z * z)
+        cosine = abs(snx * x + sny * y + snz * z) / expected
+        gap = (nearest - expected) * cosine
+        # The cell's fused noise (the mean of its observations) and fit, the pose's share, the range noise.
+        variance = (1.0 / cells[slot, 8] + cells[slot, 6] / weight
+                    + variance_along(wx, wy, wz, nx, ny, nz, covariance)
+                    + (range_sigma[row, column] * cosine) ** 2)
+        tolerance = sigmas * np.sqrt(variance)
+        if gap > tolerance and nearest - expected > floor:
+            misses[slot] += 1
+            if misses[slot] == limit:
+                reached += 1
+        elif abs(gap) <= tolerance:
+            misses[slot] = 0  # the surface is where the cell is
+    return reached
