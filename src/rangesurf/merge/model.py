@@ -185,6 +185,9 @@ class GlobalModel:
         self._timestamps = GrowingArray()
         self._history = GrowingArray((len(fields(MergeStep)),), np.int64)
         self.cells_carved = 0
+        # The patches' normals as one array, for the first test against every patch (None: to rebuild,
+        # after the list of patches changed).
+        self._normals: np.ndarray | None = None
         # id(patch) -> (patch revision, with LOD order, mesh)
         self._meshes: dict[int, tuple[int, bool, Surface]] = {}
 
@@ -426,6 +429,7 @@ class GlobalModel:
                                           sigmas=sigmas, checks=checks)
         if removed:
             self.patches = [patch for patch in self.patches if patch.n_cells]
+            self._normals = None
             self.cells_carved += removed
         return removed
 
@@ -437,24 +441,27 @@ class GlobalModel:
         """(cells touched, index) of the patches a planar surface's world points continue."""
         cosine = math.cos(math.radians(self.max_normal_angle))
         candidates = []
+        if not self.patches:
+            return candidates
+        if self._normals is None or len(self._normals) != len(self.patches):
+            self._normals = np.array([patch.normal for patch in self.patches])
         # The median distance from a plane is as well known from 2,000 points as from all of them.
-        sample = points[:: max(1, len(points) // 2000)]
+        step = max(1, len(points) // 2000)
         # Only patches whose box comes within touching distance: the cost per frame stays the same
         # however large the model grows.
         margin = reach + (self.bridge + 2) * self.cell_size
         low, high = _bounding_box(points)
         low, high = low - margin, high + margin
-        for index, patch in enumerate(self.patches):
-            if patch.normal @ plane[:3] < cosine:
-                continue
+        for index in np.flatnonzero(self._normals @ plane[:3] >= cosine):
+            patch = self.patches[index]
             patch_low, patch_high = patch.bounds()
             if (patch_low > high).any() or (patch_high < low).any():
                 continue
-            if np.median(patch.distance_to(sample)) > reach:
+            if _median_distance(points, step, patch.world_plane()) > reach:
                 continue
             touching = patch.touching(points, self.bridge + 1)
             if touching >= self.min_overlap:
-                candidates.append((touching, index))
+                candidates.append((touching, int(index)))
         return candidates
 
     def _merge(self, plane: np.ndarray, observations: Observations, frame: int, counts: dict[str, int]) -> None:
@@ -464,6 +471,7 @@ class GlobalModel:
         if not candidates:
             patch = PlanarPatch.from_plane(plane, observations.points, self.cell_size)
             self.patches.append(patch)
+            self._normals = None
             _, added = patch.fuse(observations, frame)
             counts["created"] += 1
             counts["cells_added"] += added
@@ -478,6 +486,7 @@ class GlobalModel:
             target.absorb(other, frame)
         if joined:
             self.patches = [patch for patch in self.patches if all(patch is not other for other in joined)]
+            self._normals = None
             counts["joined"] += len(joined)
         near = target.distance_to(observations.points) <= reach
         updated, added = target.fuse(observations.subset(near), frame)
@@ -740,3 +749,13 @@ def _bounding_box(points):  # pragma: no cover - compiled
             elif value > high[axis]:
                 high[axis] = value
     return low, high
+
+
+@numba.njit(**_JIT)
+def _median_distance(points, step, plane):  # pragma: no cover - compiled
+    """Median distance of every ``step``-th of the (N, 3) points from ``plane`` (unit normal, offset)."""
+    sample = points[::step]
+    distance = np.empty(sample.shape[0])
+    for k in range(sample.shape[0]):
+        distance[k] = abs(sample[k, 0] * plane[0] + sample[k, 1] * plane[1] + sample[k, 2] * plane[2] + plane[3])
+    return np.median(distance)

@@ -264,12 +264,7 @@ class PlanarPatch:
         if self.n_cells == 0:
             low = high = self.origin.copy()
         else:
-            u_range = (self.coordinates[:, 0].min() * self.cell_size, (self.coordinates[:, 0].max() + 1) * self.cell_size)
-            v_range = (self.coordinates[:, 1].min() * self.cell_size, (self.coordinates[:, 1].max() + 1) * self.cell_size)
-            heights = self.sums["h"] / self.sums["weight"]
-            h_range = (float(heights.min()), float(heights.max()))
-            corners = np.array([[u, v, h] for u in u_range for v in v_range for h in h_range]) @ self.axes + self.origin
-            low, high = corners.min(axis=0), corners.max(axis=0)
+            low, high = _cell_bounds(self._coords, self._cells, self._count, self.origin, self.axes, self.cell_size)
         self._bounds = (self.revision, low, high)
         return low, high
 
@@ -701,3 +696,26 @@ def _check_seen_through(origin, axes, cells, count, misses, rotation, translatio
         elif abs(gap) <= tolerance:
             misses[slot] = 0  # the surface is where the cell is
     return reached
+
+
+@numba.njit(**_JIT)
+def _cell_bounds(coords, cells, count, origin, axes, cell_size):  # pragma: no cover - compiled
+    """World axis-aligned box (low, high) around ``count`` >= 1 cells: their in-plane extent, their heights' range."""
+    column_low, column_high = coords[0, 0], coords[0, 0]
+    row_low, row_high = coords[0, 1], coords[0, 1]
+    height_low = height_high = cells[0, 3] / cells[0, 0]
+    for slot in range(1, count):
+        column_low, column_high = min(column_low, coords[slot, 0]), max(column_high, coords[slot, 0])
+        row_low, row_high = min(row_low, coords[slot, 1]), max(row_high, coords[slot, 1])
+        height = cells[slot, 3] / cells[slot, 0]
+        height_low, height_high = min(height_low, height), max(height_high, height)
+    low = np.full(3, np.inf)
+    high = np.full(3, -np.inf)
+    for u in (column_low * cell_size, (column_high + 1) * cell_size):
+        for v in (row_low * cell_size, (row_high + 1) * cell_size):
+            for h in (height_low, height_high):
+                for axis in range(3):
+                    corner = origin[axis] + u * axes[0, axis] + v * axes[1, axis] + h * axes[2, axis]
+                    low[axis] = min(low[axis], corner)
+                    high[axis] = max(high[axis], corner)
+    return low, high
