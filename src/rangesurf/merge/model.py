@@ -384,8 +384,8 @@ class GlobalModel:
         the real one; once the pose is right again (loop closure), the
         sensor looks through it at the real wall. Every cell in view is
         checked against the frame's ranges (`PlanarPatch.seen_through`): one
-        seen through in ``checks`` checks in a row, farther than ``sigmas``
-        standard deviations of its own, the pose's and the range's
+        seen through in ``checks`` checks in a row, by more than ``sigmas``
+        standard deviations of its fused noise, the pose's and the range's
         uncertainty, with nothing fused into it in between, is removed, and
         a patch left without cells is dropped. So the model does not keep
         (or grow by) copies of what it already has, nor objects that have

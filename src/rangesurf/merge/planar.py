@@ -366,11 +366,12 @@ class PlanarPatch:
                      sigmas: float = 3.0, checks: int = 3) -> int:
         """Check the cells against one frame's ranges; remove those it and the checks before it saw through.
 
-        A cell is seen through when every pixel around its projection
-        measures a surface farther than the cell, by more than ``sigmas``
-        standard deviations of the cell's fused position, the pose's
-        uncertainty and the range noise (all along the cell's normal: at a
-        grazing view the same gap proves less) and by more than two cells.
+        A cell is seen through when the 3 x 3 pixels around its projection
+        measure a surface farther than the cell: their median by more than
+        ``sigmas`` standard deviations of the noise of the cell's fused
+        position, the pose's uncertainty and the range noise (all along the
+        cell's normal: at a grazing view the same gap proves less), and the
+        nearest of them by more than two cells.
         A cell seen through in ``misses`` checks in a row, with no
         observation fused into it and no check finding the surface where the
         cell is in between, is removed: free space a well-placed sensor
@@ -653,6 +654,7 @@ def _check_seen_through(origin, axes, cells, count, misses, rotation, translatio
     sny = rotation[1, 0] * nx + rotation[1, 1] * ny + rotation[1, 2] * nz
     snz = rotation[2, 0] * nx + rotation[2, 1] * ny + rotation[2, 2] * nz
     reached = 0
+    window = np.empty(9)
     for slot in range(count):
         weight = cells[slot, 0]
         u, v, h = cells[slot, 1] / weight, cells[slot, 2] / weight, cells[slot, 3] / weight
@@ -668,28 +670,35 @@ def _check_seen_through(origin, axes, cells, count, misses, rotation, translatio
         row = int(np.floor(fy * y / z + cy + 0.5))
         if column < 1 or row < 1 or column >= width - 1 or row >= height - 1:
             continue
-        # The nearest surface around the projection: a cell at a silhouette, beside which the sensor sees
-        # the background, has its own surface among the neighbours and is not seen through.
-        nearest = np.inf
+        # The 3 x 3 pixels around the projection, sorted (insertion sort of nine).
         read = True
+        count_read = 0
         for dr in range(-1, 2):
             for dc in range(-1, 2):
                 measured = ranges[row + dr, column + dc]
                 if measured != measured:
                     read = False  # no reading: no evidence
-                elif measured < nearest:
-                    nearest = measured
+                    break
+                position = count_read
+                while position > 0 and window[position - 1] > measured:
+                    window[position] = window[position - 1]
+                    position -= 1
+                window[position] = measured
+                count_read += 1
+            if not read:
+                break
         if not read:
             continue
         expected = np.sqrt(x * x + y * y + z * z)
         cosine = abs(snx * x + sny * y + snz * z) / expected
-        gap = (nearest - expected) * cosine
-        # The cell's fused noise (the mean of its observations) and fit, the pose's share, the range noise.
-        variance = (1.0 / cells[slot, 8] + cells[slot, 6] / weight
-                    + variance_along(wx, wy, wz, nx, ny, nz, covariance)
+        # The statistical test on the median; the nearest pixel must be behind the cell too: a cell at a
+        # silhouette, beside which the sensor sees the background, has its own surface among the nine.
+        gap = (window[4] - expected) * cosine
+        # The noise of the cell's fused mean, the pose's share, the range noise.
+        variance = (1.0 / cells[slot, 8] + variance_along(wx, wy, wz, nx, ny, nz, covariance)
                     + (range_sigma[row, column] * cosine) ** 2)
         tolerance = sigmas * np.sqrt(variance)
-        if gap > tolerance and nearest - expected > floor:
+        if gap > tolerance and window[0] - expected > floor:
             misses[slot] += 1
             if misses[slot] == limit:
                 reached += 1
