@@ -4,15 +4,15 @@ Run: ``.venv/bin/python benchmarks/soak.py [N_FRAMES]`` (default 10,000); writes
 ``benchmarks/results/soak.md``. The SR-3000 robot circles the arena again and again (drifting odometry),
 so after the first laps the model stops growing; what must stay flat after warm-up is the process's
 resident memory and the pipeline's time per frame. Reported: RSS and the median frame time at frames
-1,000 and N, their growth, and the least-squares slopes from frame 1,000 on. RSS is sampled twice:
-as the process holds it, and right after ``malloc_trim(0)`` (glibc hands the heap pages freed by
-temporaries back to the system), which separates memory still in use from the allocator's high-water
-mark.
+1,000 and N, their growth, and the least-squares slopes from frame 1,000 on. Beside them, what the
+memory holds: the model's vertices, and the surface area the sensor has truly seen so far (the
+simulator's true hits of every 5th frame and every 2nd pixel, counted as distinct cubes of the model's
+cell size): the robot's sway shows it new bits of the arena long after the first laps, and a model
+that grows with the area seen must grow with them.
 """
 
 from __future__ import annotations
 
-import ctypes
 import dataclasses
 import os
 import resource
@@ -38,10 +38,38 @@ def rss_mb() -> float:
     return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
 
 
-def trimmed_rss_mb() -> float:
-    """RSS after glibc returns the free heap pages (memory in use, not the allocator's high-water mark)."""
-    ctypes.CDLL("libc.so.6").malloc_trim(0)
-    return rss_mb()
+class SeenArea:
+    """Distinct cubes of ``cell`` metres holding a true surface hit of the frames shown to it."""
+
+    def __init__(self, cell: float) -> None:
+        self.cell = cell
+        self.seen = np.zeros(0, np.int64)
+        self.pending: list[np.ndarray] = []
+
+    def add(self, frame, truth) -> None:
+        ranges = truth.range[::2, ::2]
+        hit = np.isfinite(ranges) & (truth.surface_id[::2, ::2] > 0)
+        points = frame.rays[::2, ::2][hit] * ranges[hit][:, None]
+        world = points @ truth.T_world_sensor[:3, :3].T + truth.T_world_sensor[:3, 3]
+        cube = np.floor(world / self.cell).astype(np.int64) + 2**20
+        self.pending.append((cube[:, 0] << 42) | (cube[:, 1] << 21) | cube[:, 2])
+
+    def count(self) -> int:
+        if self.pending:
+            self.seen = np.union1d(self.seen, np.concatenate(self.pending))
+            self.pending = []
+        return len(self.seen)
+
+
+def later_growth(table: np.ndarray, start: int) -> list[str]:
+    """A sentence on the growth from frame ``start`` on (once the surface seen has nearly stopped growing)."""
+    rows = table[table[:, 0] >= start]
+    if len(rows) < 2 or rows[-1, 0] < 2 * start:
+        return []
+    first, last = rows[0], rows[-1]
+    growth = [100 * (last[column] / first[column] - 1) for column in (1, 3, 4)]
+    return ["", f"From frame {start:,} to {int(last[0]):,}: resident memory {growth[0]:+.2f} %, model vertices "
+                f"{growth[1]:+.2f} %, surface seen {growth[2]:+.2f} %."]
 
 
 def main() -> None:
@@ -50,27 +78,30 @@ def main() -> None:
     true_poses = simulate.default_trajectory("arena", n_frames, frame_rate=sensor.frame_rate)
     odometry = simulate.noisy_odometry(true_poses, seed=9)
     pipeline = Pipeline()
-    samples = []  # (frame, rss MB, median ms of the last 100 frames, rss MB after malloc_trim)
+    samples = []  # (frame, rss MB, median ms of the last 100 frames, model vertices, cubes of surface seen)
+    seen = None
     window = []
     started = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"):
         sequence = simulate.iter_sequence("arena", sensor, n_frames, seed=9, trajectory=true_poses)
-        for index, (frame, _) in enumerate(sequence):
+        for index, (frame, truth) in enumerate(sequence):
             result = pipeline.process(dataclasses.replace(frame, pose=odometry[index]))
             window.append(result.timings["total"])
+            seen = seen or SeenArea(pipeline.model.cell_size)
+            if index % 5 == 0:
+                seen.add(frame, truth)
             if (index + 1) % 100 == 0:
-                samples.append((index + 1, rss_mb(), float(np.median(window)), trimmed_rss_mb()))
+                samples.append((index + 1, rss_mb(), float(np.median(window)), pipeline.model.n_vertices, seen.count()))
                 window = []
                 if (index + 1) % 1000 == 0:
-                    print(f"frame {index + 1}: RSS {samples[-1][1]:.1f} MB ({samples[-1][3]:.1f} trimmed), "
-                          f"{samples[-1][2]:.2f} ms/frame, "
+                    print(f"frame {index + 1}: RSS {samples[-1][1]:.1f} MB, {samples[-1][2]:.2f} ms/frame, "
+                          f"{samples[-1][4]} cubes of surface seen, "
                           f"{pipeline.model.n_vertices} model vertices", flush=True)
     elapsed = time.perf_counter() - started
     table = np.array(samples)
     after = table[table[:, 0] >= min(1000, n_frames // 2)]
     first, last = after[0], after[-1]
     rss_slope = np.polyfit(after[:, 0], after[:, 1], 1)[0] * 1000
-    trimmed_slope = np.polyfit(after[:, 0], after[:, 3], 1)[0] * 1000
     time_slope = np.polyfit(after[:, 0], after[:, 2], 1)[0] * 1000
     lines = [
         f"Machine: {machine_description()}. Command: `.venv/bin/python benchmarks/soak.py {n_frames}`.", "",
@@ -79,9 +110,11 @@ def main() -> None:
         "| measure | at frame {:d} | at frame {:d} | growth | slope per 1,000 frames |".format(int(first[0]), int(last[0])),
         "|---|---:|---:|---:|---:|",
         f"| resident memory (MB) | {first[1]:.1f} | {last[1]:.1f} | {100 * (last[1] / first[1] - 1):+.2f} % | {rss_slope:+.3f} MB |",
-        f"| resident memory after malloc_trim (MB) | {first[3]:.1f} | {last[3]:.1f} | {100 * (last[3] / first[3] - 1):+.2f} % "
-        f"| {trimmed_slope:+.3f} MB |",
         f"| time per frame (ms) | {first[2]:.2f} | {last[2]:.2f} | {100 * (last[2] / first[2] - 1):+.2f} % | {time_slope:+.4f} ms |",
+        f"| model vertices | {first[3]:,.0f} | {last[3]:,.0f} | {100 * (last[3] / first[3] - 1):+.2f} % | |",
+        f"| surface seen (cubes of {seen.cell * 1000:.1f} mm) | {first[4]:,.0f} | {last[4]:,.0f} | "
+        f"{100 * (last[4] / first[4] - 1):+.2f} % | |",
+        *later_growth(table, 3000),
         "", f"Peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB; model at the end: "
         f"{pipeline.model.n_vertices} vertices in {len(pipeline.model.patches)} patches; {pipeline.model.cells_carved} cells "
         f"carved as seen-through free space; late frames {pipeline.late}.",

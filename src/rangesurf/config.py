@@ -127,12 +127,17 @@ class RunSettings:
     (deferrable work; always done at the end). ``checkpoint_every``: frames
     between atomic checkpoints of the model (0: none). ``on_bad_frame``:
     "skip" (report it and go on) or "stop" (save what was merged and stop).
+    ``release_memory_every``: frames between handing the memory that
+    temporaries freed back to the system (glibc's ``malloc_trim``; deferrable
+    work), so that a long run's resident memory follows what it holds, not
+    its peaks; 0: never.
     """
 
     budget_ms: float | None = None
     remesh_every: int = 25
     checkpoint_every: int = 25
     on_bad_frame: str = "skip"
+    release_memory_every: int = 100
 
 
 @dataclass(frozen=True)
@@ -164,7 +169,8 @@ class PipelineConfig:
             if value is not None and value < 1:
                 raise ConfigError(f"config: {name} must be >= 1 or unset, got {value}")
         for name in ("register.keyframe_distance", "register.keyframe_angle", "register.align_to_model_every",
-                     "merge.carve_every", "run.remesh_every", "run.checkpoint_every", "merge.bridge"):
+                     "merge.carve_every", "run.remesh_every", "run.checkpoint_every", "run.release_memory_every",
+                     "merge.bridge"):
             if self._get(name) < 0:
                 raise ConfigError(f"config: {name} must be >= 0, got {self._get(name)}")
         if self.merge.min_overlap < 1:

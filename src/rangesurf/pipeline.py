@@ -26,7 +26,10 @@ True
 
 from __future__ import annotations
 
+import ctypes
+import ctypes.util
 import dataclasses
+import functools
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -51,6 +54,8 @@ STAGES = ("denoise", "segment", "surfaces", "register", "merge", "volume", "defe
 # more points than they need).
 _DENSE_FRAME = 200_000
 _CHECKPOINT_VERSION = 1
+# Time (ms) a frame must have left for handing freed memory back (malloc_trim: about 1-5 ms at 300 MB).
+_RELEASE_MS = 5.0
 
 
 @dataclass(frozen=True)
@@ -133,6 +138,7 @@ class Pipeline:
         self.postponed = 0
         self.checkpoint_extra: dict[str, np.ndarray] = {}
         self._remesh_queue: list = []
+        self._release_due = False
         # Measured cost of re-meshing (mesh and LOD order), per cell; a cautious start.
         self._ms_per_cell = 0.005
 
@@ -276,6 +282,12 @@ class Pipeline:
             if self._remesh_queue:
                 self.postponed += 1
                 deferred = True
+        every = self.config.run.release_memory_every
+        if every and (self.frames + 1) % every == 0:
+            self._release_due = True
+        if self._release_due and budget - 1e3 * (time.perf_counter() - start) > _RELEASE_MS:
+            _release_freed_memory()
+            self._release_due = False
         lap("deferred")
 
         timings["total"] = 1e3 * (time.perf_counter() - start)
@@ -362,3 +374,26 @@ def _median_footprint(frame: RangeFrame, distance: np.ndarray, *, rows: int = 4,
     footprint = angle * distance[::rows, 1::columns]
     footprint = footprint[np.isfinite(footprint) & (footprint > 0)]
     return float(np.median(footprint)) if footprint.size else 0.0
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim``, or None where the C library has none (musl, macOS, Windows)."""
+    name = ctypes.util.find_library("c")
+    try:
+        return getattr(ctypes.CDLL(name), "malloc_trim", None) if name else None
+    except OSError:
+        return None
+
+
+def _release_freed_memory() -> None:
+    """Hand the heap pages that freed temporaries left behind back to the system.
+
+    glibc keeps freed memory for reuse and raises its threshold for using
+    fresh pages after large frees, so a long run's resident memory ratchets
+    up to its peaks (a re-meshed large patch, two patches joined) and stays
+    there; trimming lets it follow what the process actually holds.
+    """
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
