@@ -131,6 +131,64 @@ def test_bad_input_is_refused():
         icp(np.full((10, 3), np.inf), points, normals)
     with pytest.raises(ValueError, match="organized"):
         icp(points, points, normals, target_projection=rs.get_sensor("sr3000").projection)
+    with pytest.raises(ValueError, match="max_iterations"):
+        icp(points, points, normals, max_iterations=0)
+
+
+def test_compiled_projective_equations_match_numpy():
+    """The compiled pass (pairs buffered and summed in chunks) gives the normal equations of the NumPy path."""
+    from rangesurf.register import _TUKEY, _Associator, _tukey
+
+    frames, _ = simulate.simulate_sequence("arena", "sr3000", 2, seed=1)
+    projection = frames[0].sensor.projection
+    target = frames[0].points.astype(np.float64)
+    normals = estimate_normals(frames[0].points, projection=projection)
+    source = frames[1].points.reshape(-1, 3)
+    source = source[np.isfinite(source).all(axis=1)]
+    transform = np.linalg.inv(frames[0].pose) @ frames[1].pose
+    scale = 0.01 * _TUKEY
+    associate = _Associator(target, normals, projection)
+    information, paired, inliers, rmse = associate.projective_quality(source, transform, 0.1, scale)
+    pairs = associate(source, transform, 0.1)
+    residual = pairs.residuals("point_to_plane")
+    weights = _tukey(residual, scale)
+    assert paired == pairs.count and inliers == np.count_nonzero(weights) > 5000  # several chunks
+    assert np.allclose(information, pairs.information("point_to_plane", weights), rtol=1e-9, atol=0.0)
+    assert rmse == pytest.approx(np.sqrt(np.mean(residual[weights > 0] ** 2)), rel=1e-9)
+
+
+@pytest.mark.parametrize("size", [1, 2, 7, 10, 1999, 2000])
+def test_compiled_median_matches_numpy(size):
+    from rangesurf.register import _median
+
+    rng = np.random.default_rng(size)
+    for values in (rng.normal(size=size), np.round(rng.normal(size=size), 1), np.zeros(size)):  # ties too
+        assert _median(values.copy()) == np.median(values)
+
+
+def test_compiled_gauss_newton_step_matches_lapack():
+    """The written-out Cholesky solve of the damped normal equations, also for a rank-deficient (degenerate) matrix."""
+    from rangesurf.register import _solve
+
+    rng = np.random.default_rng(8)
+    for rank in (6, 3):
+        jacobian = rng.normal(size=(200, rank)) @ rng.normal(size=(rank, 6))
+        information, gradient = jacobian.T @ jacobian, rng.normal(size=6)
+        damped = information + 1e-9 * np.trace(information) * np.eye(6)
+        assert np.allclose(_solve(information, gradient), -np.linalg.solve(damped, gradient), rtol=1e-6, atol=0.0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-9, 0.3, 2.0, np.pi - 1e-4, np.pi])
+def test_rotation_vector_round_trip(angle):
+    from rangesurf.register import _exp, _log
+
+    for axis in np.random.default_rng(3).normal(size=(5, 3)):
+        rotvec = angle * axis / np.linalg.norm(axis)
+        matrix = Rotation.from_rotvec(rotvec).as_matrix()
+        recovered = _log(matrix)
+        assert np.allclose(Rotation.from_rotvec(recovered).as_matrix(), matrix, atol=1e-12)
+        assert np.linalg.norm(recovered) == pytest.approx(angle, abs=1e-12)
+        assert np.allclose(_exp(np.r_[recovered, 0.0, 0.0, 0.0])[:3, :3], matrix, atol=1e-12)
 
 
 def test_3dtk_scans_from_odometry_align_as_well_as_the_reference():

@@ -48,7 +48,6 @@ import numba
 import numpy as np
 from numpy.typing import ArrayLike
 from scipy.spatial import cKDTree
-from scipy.spatial.transform import Rotation
 
 from rangesurf.frame import PinholeProjection, check_rigid_transform
 
@@ -77,6 +76,13 @@ _INNOVATION_GATE = 20.0
 # Variance of a constant-velocity motion prior, relative to the odometry's.
 _CONSTANT_VELOCITY_SCALE = 9.0
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+# The per-point kernel may fuse multiply-adds and divide by a reciprocal: a quarter faster, the same to
+# rounding. (No "nnan"/"ninf": its NaN tests must stand.)
+_JIT_ARITHMETIC = dict(_JIT, fastmath={"contract", "arcp"})
+# Sums may also be reordered, so that they run in SIMD lanes (the same to rounding).
+_JIT_SUMS = dict(_JIT, fastmath={"contract", "arcp", "reassoc", "nsz"})
+# Inlier columns the point-to-plane kernel buffers before summing them (8 x 512 float64: 32 kB).
+_CHUNK = 512
 
 
 @dataclass(frozen=True)
@@ -158,7 +164,7 @@ def icp(
         level that takes every ``step``-th source point searches ``step``
         times as far. Also bounds the robust weights' scale.
     max_iterations : int
-        Per level.
+        Per level, at least 1.
     levels : tuple of int, optional
         Source subsampling steps, coarse to fine. Default (4, 2, 1) below
         20,000 source points, (4, 2) from there and (8, 4, 2) from 100,000
@@ -226,6 +232,8 @@ def icp(
     transform = np.eye(4) if initial is None else check_rigid_transform(initial, "initial")
     if not (max_correspondence_distance > 0):
         raise ValueError(f"max_correspondence_distance must be > 0, got {max_correspondence_distance}")
+    if max_iterations < 1:
+        raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
     associate = _Associator(target_array, normals_array, target_projection)
 
     if levels is None:
@@ -239,62 +247,66 @@ def icp(
         raise ValueError(f"levels must be subsampling steps >= 1, coarse to fine, got {levels!r}")
     iterations = 0
     converged = False
-    pairs = None
     scale = None
+    fast = method == "point_to_plane" and target_projection is not None
     for step in levels:
         step = max(int(step), 1)
         sample = source_points[::step]
         # Coarse levels also search wider: an initial guess a few degrees off moves far points by more
         # than the final correspondence distance.
         distance = max_correspondence_distance * step
-        fast = method == "point_to_plane" and target_projection is not None
         # The robust scale of a pass comes from the previous pass's residuals (one pass per step),
         # carried over from the coarser level.
         scale = _TUKEY * distance if scale is None else min(scale, _TUKEY * distance)
-        for _ in range(max_iterations):
-            if fast:
-                # Depth camera: pairing and normal equations in one compiled pass, no temporaries.
-                information, gradient, residuals = associate.projective_pass(sample, transform, distance, scale)
-                _require_pairs(len(residuals), distance, min_inliers)
-                scale = _robust_scale(residuals, distance)
-                delta = _solve(information, gradient)
-            else:
+        # Coarse levels only need to get close: their tolerance grows with the step.
+        rotation_tolerance, translation_tolerance = tolerance[0] * step, tolerance[1] * step
+        if fast:
+            # Depth camera: the whole level compiled (pairing, normal equations, robust scale, step), with
+            # no Python between its iterations.
+            transform, scale, taken, converged, paired = associate.projective_level(
+                sample, transform, distance, scale, max_iterations, rotation_tolerance, translation_tolerance, min_inliers
+            )
+            iterations += taken
+            _require_pairs(paired, distance, min_inliers)
+        else:
+            for _ in range(max_iterations):
                 pairs = associate(sample, transform, distance)
                 _require_pairs(pairs.count, distance, min_inliers)
                 if method == "point_to_plane":
                     delta = _point_to_plane_step(pairs, distance)
                 else:
                     delta = _point_to_point_step(pairs, distance)
-            transform = _exp(delta) @ transform
-            iterations += 1
-            # Coarse levels only need to get close: their tolerance grows with the step.
-            converged = np.linalg.norm(delta[:3]) < tolerance[0] * step and np.linalg.norm(delta[3:]) < tolerance[1] * step
-            if converged:
-                break
+                transform = _exp(delta) @ transform
+                iterations += 1
+                converged = _converged(delta, rotation_tolerance, translation_tolerance)
+                if converged:
+                    break
     # Quality at the end, on the finest level's points; the information of every point is about that
     # of its sample times the step.
     final_step = max(int(levels[-1]), 1)
     final_points = source_points[::final_step]
-    if method == "point_to_plane" and target_projection is not None:
+    if fast:
         # The last step's robust scale (its residuals are those of a pose less than a tolerance away).
-        final_scale = min(scale if scale is not None else np.inf, _TUKEY * max_correspondence_distance)
-        information, _, residual = associate.projective_pass(final_points, transform, max_correspondence_distance, final_scale)
-        weights = _tukey(residual, final_scale)
+        final_scale = min(scale, _TUKEY * max_correspondence_distance)
+        information, paired, inliers, rmse = associate.projective_quality(
+            final_points, transform, max_correspondence_distance, final_scale
+        )
     else:
         pairs = associate(final_points, transform, max_correspondence_distance)
+        paired = pairs.count
         residual = pairs.residuals(method)
         weights = _tukey(residual, _robust_scale(residual, max_correspondence_distance))
         information = pairs.information(method, weights)
-    if len(residual) < min_inliers:
-        raise ValueError(f"only {len(residual)} source points are paired at the end (need {min_inliers})")
-    inliers = weights > 0
-    rmse = float(np.sqrt(np.mean(residual[inliers] ** 2))) if inliers.any() else float("nan")
+        inliers = int(np.count_nonzero(weights))
+        rmse = float(np.sqrt(np.mean(residual[weights > 0] ** 2))) if inliers else math.nan
+    if paired < min_inliers:
+        raise ValueError(f"only {paired} source points are paired at the end (need {min_inliers})")
     information = information * final_step
     covariance, unconstrained = _covariance(information, rmse)
     return RegistrationResult(
         T_target_source=transform,
         rmse=rmse,
-        inlier_fraction=float(inliers.sum() / len(final_points)),
+        inlier_fraction=inliers / len(final_points),
         covariance=covariance,
         iterations=iterations,
         converged=bool(converged),
@@ -366,6 +378,18 @@ def compose_covariance(T_world_target: ArrayLike, world_covariance: ArrayLike, r
         if matrix.shape != (6, 6) or np.isnan(matrix).any():
             raise ValueError(f"{name} must be a 6x6 covariance without NaN, got shape {matrix.shape}")
         covariances.append(matrix)
+    relative = covariances[1]
+    if np.isfinite(relative).all():
+        carried = _to_world(pose, relative)
+    else:
+        # inf * 0 would give NaN: carry a large finite stand-in, then mark what it reached as unknown.
+        carried = _to_world(pose, np.where(np.isfinite(relative), relative, 1e300))
+        carried = np.where(np.abs(carried) > 1e250, np.inf, carried)
+    return covariances[0] + carried
+
+
+def _to_world(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
+    """A finite covariance of a left perturbation in ``pose``'s frame carried into the world's by the adjoint."""
     rotation, translation = pose[:3, :3], pose[:3, 3]
     skew = np.array([[0.0, -translation[2], translation[1]], [translation[2], 0.0, -translation[0]],
                      [-translation[1], translation[0], 0.0]])
@@ -373,15 +397,7 @@ def compose_covariance(T_world_target: ArrayLike, world_covariance: ArrayLike, r
     adjoint[:3, :3] = rotation
     adjoint[3:, :3] = skew @ rotation
     adjoint[3:, 3:] = rotation
-    relative = covariances[1]
-    if np.isfinite(relative).all():
-        carried = adjoint @ relative @ adjoint.T
-    else:
-        # inf * 0 would give NaN: carry a large finite stand-in, then mark what it reached as unknown.
-        stand_in = np.where(np.isfinite(relative), relative, 1e300)
-        carried = adjoint @ stand_in @ adjoint.T
-        carried = np.where(np.abs(carried) > 1e250, np.inf, carried)
-    return covariances[0] + carried
+    return adjoint @ covariance @ adjoint.T
 
 
 @dataclass(frozen=True)
@@ -559,13 +575,13 @@ class FrameTracker:
         if fused is not None:
             motion, relative_covariance = fused
             pose = key_pose @ motion
-            step_covariance = compose_covariance(key_pose, np.zeros((6, 6)), relative_covariance)
+            step_covariance = _to_world(key_pose, relative_covariance)
             covariance = key_covariance + step_covariance
         else:
             # ICP failed, or the prior rules its result out: dead-reckon one step on the prior.
             result = None
             pose = self.pose @ step
-            step_covariance = compose_covariance(self.pose, np.zeros((6, 6)), prior_covariance)
+            step_covariance = _to_world(self.pose, prior_covariance)
             covariance = self.covariance + step_covariance
             motion = np.linalg.inv(key_pose) @ pose
         self._motion = np.linalg.inv(self.pose) @ pose
@@ -642,7 +658,7 @@ class FrameTracker:
         """
         # Left perturbation from the prior to ICP's estimate.
         difference = result.T_target_source @ np.linalg.inv(prior)
-        delta = np.r_[Rotation.from_matrix(difference[:3, :3]).as_rotvec(), difference[:3, 3]]
+        delta = np.concatenate([_log(difference[:3, :3]), difference[:3, 3]])
         # Floored at (0.1 mm)^2: noise-free data would otherwise claim unbounded information.
         variance = max(result.rmse**2, _MIN_RESIDUAL_VARIANCE) if math.isfinite(result.rmse) else 1.0
         measured = result.information / (variance * self.icp_variance_scale)
@@ -672,30 +688,33 @@ def _as_points(points: Any, name: str) -> np.ndarray:
     array = np.asarray(points)
     if not np.issubdtype(array.dtype, np.floating):
         array = array.astype(np.float64)
-    if array.ndim == 3 and array.shape[2] == 3:
-        array = array.reshape(-1, 3)
-    if array.ndim != 2 or array.shape[1] != 3:
+    if array.ndim == 2 and array.shape[1] == 3:
+        array = array[np.newaxis]
+    if array.ndim != 3 or array.shape[2] != 3:
         raise ValueError(f"{name} must be (H, W, 3) or (N, 3) points, got shape {np.shape(points)}")
-    valid, infinite = _finite_rows(np.ascontiguousarray(array))
+    # Compacted straight from the grid: a thinned view (a decimated frame) would cost NumPy a slow
+    # strided copy to flatten first.
+    valid, infinite = _finite_rows(array)
     if infinite:
         raise ValueError(f"{name} contains Inf; mark missing points with NaN")
     return valid
 
 
 @numba.njit(**_JIT)
-def _finite_rows(points):  # pragma: no cover - compiled
-    """The rows without NaN, in one pass; and whether any coordinate is infinite."""
-    kept = np.empty_like(points)
+def _finite_rows(grid):  # pragma: no cover - compiled
+    """The points of an (H, W, 3) grid without NaN, row by row, as (N, 3); and whether one has an infinite coordinate."""
+    kept = np.empty((grid.shape[0] * grid.shape[1], 3), grid.dtype)
     count = 0
     infinite = False
-    for k in range(points.shape[0]):
-        x, y, z = points[k, 0], points[k, 1], points[k, 2]
-        if x == x and y == y and z == z:
-            if abs(x) == np.inf or abs(y) == np.inf or abs(z) == np.inf:
-                infinite = True
-                continue
+    for row in range(grid.shape[0]):
+        for column in range(grid.shape[1]):
+            x, y, z = grid[row, column, 0], grid[row, column, 1], grid[row, column, 2]
+            # Written unconditionally and kept by advancing the count: no branch on the common path.
             kept[count, 0], kept[count, 1], kept[count, 2] = x, y, z
-            count += 1
+            if x - x == 0.0 and y - y == 0.0 and z - z == 0.0:  # finite (NaN and Inf give NaN)
+                count += 1
+            elif x == x and y == y and z == z:
+                infinite = True
     return kept[:count], infinite
 
 
@@ -742,6 +761,7 @@ class _Associator:
         if projection is not None:
             self.grid, self.grid_normals = target, normals
             self.height, self.width = target.shape[:2]
+            self.intrinsics = np.array([projection.fx, projection.fy, projection.cx, projection.cy])
         else:
             flat = target.reshape(-1, 3)
             keep = np.isfinite(flat).all(axis=1)
@@ -756,17 +776,25 @@ class _Associator:
                 raise ValueError("the target has no valid points")
             self.tree = cKDTree(self.points)
 
-    def projective_pass(
+    def projective_quality(
         self, source: np.ndarray, transform: np.ndarray, max_distance: float, scale: float
-    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Compiled projective pairing and point-to-plane normal equations: (information, gradient, residuals)."""
-        p = self.projection
-        intrinsics = np.array([p.fx, p.fy, p.cx, p.cy])
-        residuals = np.empty(len(source))
-        information, gradient, count = _projective_pass(
-            source, transform, self.grid, self.grid_normals, intrinsics, max_distance, scale, residuals
+    ) -> tuple[np.ndarray, int, int, float]:
+        """Projective point-to-plane pairs at a pose: (information, pairs, inliers, inliers' RMS residual)."""
+        information, _, count, inliers, squares = _projective_pass(
+            source, transform, self.grid, self.grid_normals, self.intrinsics, max_distance, scale, np.empty(len(source)),
+            np.empty((8, _CHUNK)),
         )
-        return information, gradient, residuals[:count]
+        return information, count, inliers, math.sqrt(squares / inliers) if inliers else math.nan
+
+    def projective_level(
+        self, source: np.ndarray, transform: np.ndarray, max_distance: float, scale: float, max_iterations: int,
+        rotation_tolerance: float, translation_tolerance: float, min_inliers: int,
+    ) -> tuple[np.ndarray, float, int, bool, int]:
+        """One level's projective point-to-plane iterations (`_projective_level`)."""
+        return _projective_level(
+            source, transform, self.grid, self.grid_normals, self.intrinsics, max_distance, scale, max_iterations,
+            rotation_tolerance, translation_tolerance, min_inliers,
+        )
 
     def __call__(self, source: np.ndarray, transform: np.ndarray, max_distance: float) -> _Pairs:
         moved = source @ transform[:3, :3].T + transform[:3, 3]
@@ -793,13 +821,46 @@ class _Associator:
 # --------------------------------------------------------------------------
 
 
-def _robust_scale(residual: np.ndarray, max_distance: float) -> float:
+@numba.njit(**_JIT)
+def _robust_scale(residual, max_distance):  # pragma: no cover - compiled
     """Tukey scale: from the median absolute residual, at most the correspondence distance."""
     # A median of 2,000 residuals is as good a scale as one of all of them (about 3 % standard error),
     # and far cheaper.
     sample = residual[:: max(1, len(residual) // 2_000)]
-    median = float(np.median(np.abs(sample))) if len(sample) else max_distance
+    median = _median(np.abs(sample)) if len(sample) else max_distance
     return min(max(_TUKEY * _MAD_TO_SIGMA * median, 1e-9), _TUKEY * max_distance)
+
+
+@numba.njit(**_JIT)
+def _median(values):  # pragma: no cover - compiled
+    """The median of a non-empty array, reordering it (Hoare's quickselect: as fast as ``np.median``, and
+    compiled in a third of the time)."""
+    middle = len(values) // 2
+    low, high = 0, len(values) - 1
+    while low < high:
+        pivot = values[(low + high) // 2]
+        i, j = low, high
+        while i <= j:
+            while values[i] < pivot:
+                i += 1
+            while values[j] > pivot:
+                j -= 1
+            if i <= j:
+                values[i], values[j] = values[j], values[i]
+                i += 1
+                j -= 1
+        # Everything up to j is <= pivot, everything from i on >= pivot, and between them == pivot.
+        if middle <= j:
+            high = j
+        elif middle >= i:
+            low = i
+        else:
+            break
+    upper = values[middle]
+    if len(values) % 2:
+        return upper
+    # The lower middle value is the largest of those left of the middle (all <= upper).
+    return 0.5 * (values[:middle].max() + upper)
 
 
 def _tukey(residual: np.ndarray, scale: float) -> np.ndarray:
@@ -815,10 +876,45 @@ def _require_pairs(count: int, distance: float, min_inliers: int) -> None:
         )
 
 
-def _solve(information: np.ndarray, gradient: np.ndarray) -> np.ndarray:
-    """The Gauss-Newton step; a tiny damping keeps the unconstrained directions of degenerate scenes still."""
-    damping = 1e-9 * max(np.trace(information), 1e-12)
-    return -np.linalg.solve(information + damping * np.eye(6), gradient)
+@numba.njit(**_JIT)
+def _solve(information, gradient):  # pragma: no cover - compiled
+    """The Gauss-Newton step ``-(H + d I)^-1 g``, by Cholesky factors written out (LAPACK costs seconds to compile).
+
+    A tiny damping ``d`` keeps the unconstrained directions of degenerate
+    scenes still, and ``H + d I`` positive definite.
+    """
+    trace = 0.0
+    for i in range(6):
+        trace += information[i, i]
+    damping = 1e-9 * max(trace, 1e-12)
+    lower = np.zeros((6, 6))
+    for i in range(6):
+        for j in range(i + 1):
+            total = information[i, j] + (damping if i == j else 0.0)
+            for k in range(j):
+                total -= lower[i, k] * lower[j, k]
+            lower[i, j] = math.sqrt(total) if i == j else total / lower[j, j]
+    # L y = -g, then L^T x = y.
+    step = np.empty(6)
+    for i in range(6):
+        total = -gradient[i]
+        for k in range(i):
+            total -= lower[i, k] * step[k]
+        step[i] = total / lower[i, i]
+    for i in range(5, -1, -1):
+        total = step[i]
+        for k in range(i + 1, 6):
+            total -= lower[k, i] * step[k]
+        step[i] = total / lower[i, i]
+    return step
+
+
+@numba.njit(**_JIT)
+def _converged(delta, rotation_tolerance, translation_tolerance):  # pragma: no cover - compiled
+    """The step (rotation vector, translation) is below both tolerances (radians, metres)."""
+    rotation = math.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
+    translation = math.sqrt(delta[3] ** 2 + delta[4] ** 2 + delta[5] ** 2)
+    return rotation < rotation_tolerance and translation < translation_tolerance
 
 
 def _point_to_plane_step(pairs: _Pairs, max_distance: float) -> np.ndarray:
@@ -844,19 +940,72 @@ def _point_to_point_step(pairs: _Pairs, max_distance: float) -> np.ndarray:
     correction = np.diag([1.0, 1.0, np.sign(np.linalg.det(vt.T @ u.T))])
     rotation = vt.T @ correction @ u.T
     translation = mean_target - rotation @ mean_source
-    return np.concatenate([Rotation.from_matrix(rotation).as_rotvec(), translation])
+    return np.concatenate([_log(rotation), translation])
 
 
-def _exp(delta: np.ndarray) -> np.ndarray:
+@numba.njit(**_JIT)
+def _exp(delta):  # pragma: no cover - compiled
     """(rotation vector, translation) as a 4x4 transform applied on the left (Rodrigues' formula)."""
     transform = np.eye(4)
     angle = math.sqrt(delta[0] ** 2 + delta[1] ** 2 + delta[2] ** 2)
     if angle > 0.0:
+        # R = I + sin(a) K + (1 - cos(a)) K^2 with K the cross-product matrix of the unit axis k
+        # and K^2 = k k^T - I, written out.
         kx, ky, kz = delta[0] / angle, delta[1] / angle, delta[2] / angle
-        cross = np.array([[0.0, -kz, ky], [kz, 0.0, -kx], [-ky, kx, 0.0]])
-        transform[:3, :3] += math.sin(angle) * cross + (1.0 - math.cos(angle)) * (cross @ cross)
-    transform[:3, 3] = delta[3:]
+        sine, versine = math.sin(angle), 1.0 - math.cos(angle)
+        transform[0, 0] = 1.0 + versine * (kx * kx - 1.0)
+        transform[0, 1] = versine * kx * ky - sine * kz
+        transform[0, 2] = versine * kx * kz + sine * ky
+        transform[1, 0] = versine * kx * ky + sine * kz
+        transform[1, 1] = 1.0 + versine * (ky * ky - 1.0)
+        transform[1, 2] = versine * ky * kz - sine * kx
+        transform[2, 0] = versine * kx * kz - sine * ky
+        transform[2, 1] = versine * ky * kz + sine * kx
+        transform[2, 2] = 1.0 + versine * (kz * kz - 1.0)
+    transform[0, 3], transform[1, 3], transform[2, 3] = delta[3], delta[4], delta[5]
     return transform
+
+
+@numba.njit(**_JIT)
+def _compose(left, right):  # pragma: no cover - compiled
+    """The 4x4 product ``left @ right`` (written out: a BLAS call costs seconds to compile)."""
+    product = np.zeros((4, 4))
+    for i in range(4):
+        for j in range(4):
+            for k in range(4):
+                product[i, j] += left[i, k] * right[k, j]
+    return product
+
+
+@numba.njit(**_JIT)
+def _log(rotation):  # pragma: no cover - compiled
+    """The rotation vector of a 3x3 rotation matrix (the inverse of `_exp`'s rotation).
+
+    Through the unit quaternion, taken from its largest component (Shepperd's
+    method), so that it stays accurate at every angle up to 180 degrees.
+    """
+    m00, m01, m02 = rotation[0, 0], rotation[0, 1], rotation[0, 2]
+    m10, m11, m12 = rotation[1, 0], rotation[1, 1], rotation[1, 2]
+    m20, m21, m22 = rotation[2, 0], rotation[2, 1], rotation[2, 2]
+    trace = m00 + m11 + m22
+    if trace >= m00 and trace >= m11 and trace >= m22:
+        w = 0.5 * math.sqrt(1.0 + trace)
+        x, y, z = (m21 - m12) / (4.0 * w), (m02 - m20) / (4.0 * w), (m10 - m01) / (4.0 * w)
+    elif m00 >= m11 and m00 >= m22:
+        x = 0.5 * math.sqrt(1.0 + m00 - m11 - m22)
+        w, y, z = (m21 - m12) / (4.0 * x), (m01 + m10) / (4.0 * x), (m02 + m20) / (4.0 * x)
+    elif m11 >= m22:
+        y = 0.5 * math.sqrt(1.0 - m00 + m11 - m22)
+        w, x, z = (m02 - m20) / (4.0 * y), (m01 + m10) / (4.0 * y), (m12 + m21) / (4.0 * y)
+    else:
+        z = 0.5 * math.sqrt(1.0 - m00 - m11 + m22)
+        w, x, y = (m10 - m01) / (4.0 * z), (m02 + m20) / (4.0 * z), (m12 + m21) / (4.0 * z)
+    if w < 0.0:
+        w, x, y, z = -w, -x, -y, -z
+    sine = math.sqrt(x * x + y * y + z * z)
+    # angle / sin(angle / 2); x, y, z are all 0 when the sine is.
+    factor = 2.0 * math.atan2(sine, w) / sine if sine > 0.0 else 0.0
+    return np.array([factor * x, factor * y, factor * z])
 
 
 def _covariance(information: np.ndarray, rmse: float) -> tuple[np.ndarray, np.ndarray]:
@@ -878,21 +1027,19 @@ def _covariance(information: np.ndarray, rmse: float) -> tuple[np.ndarray, np.nd
 # --------------------------------------------------------------------------
 
 
-@numba.njit(**_JIT)
-def _projective_pass(source, transform, grid, normals, intrinsics, max_distance, scale, residuals):  # pragma: no cover - compiled
+@numba.njit(**_JIT_ARITHMETIC)
+def _projective_pass(source, transform, grid, normals, intrinsics, max_distance, scale, residuals, rows):  # pragma: no cover - compiled
     """Pair, then accumulate J^T W J and J^T W r of the Tukey-weighted point-to-plane residuals (J = [p x n, n]).
 
     Every paired residual is written to ``residuals`` (for the next robust
-    scale); returns (information, gradient, pairs). The 27 sums are kept in
-    scalars: in an array, every point would store and reload them.
+    scale); returns (information, gradient, pairs, inliers, sum of the
+    inliers' squared residuals), inliers being the pairs of nonzero weight.
+    The inliers' Jacobian rows, residuals and weights go to ``rows`` (8, C)
+    and are summed every C inliers by `_accumulate`: the branchy pairing
+    and the branch-free sums each compile to a tight loop (a third faster
+    than one loop doing both), and C columns stay in cache.
     """
-    h00 = h01 = h02 = h03 = h04 = h05 = 0.0
-    h11 = h12 = h13 = h14 = h15 = 0.0
-    h22 = h23 = h24 = h25 = 0.0
-    h33 = h34 = h35 = 0.0
-    h44 = h45 = 0.0
-    h55 = 0.0
-    g0 = g1 = g2 = g3 = g4 = g5 = 0.0
+    sums = np.zeros((6, 7))
     # The transform and intrinsics in registers, not reloaded per point.
     t00, t01, t02, t03 = transform[0, 0], transform[0, 1], transform[0, 2], transform[0, 3]
     t10, t11, t12, t13 = transform[1, 0], transform[1, 1], transform[1, 2], transform[1, 3]
@@ -900,7 +1047,8 @@ def _projective_pass(source, transform, grid, normals, intrinsics, max_distance,
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     height, width = grid.shape[0], grid.shape[1]
     limit = max_distance * max_distance
-    count = 0
+    count = inliers = filled = 0
+    squares = 0.0
     for k in range(source.shape[0]):
         x, y, z = source[k, 0], source[k, 1], source[k, 2]
         mx = t00 * x + t01 * y + t02 * z + t03
@@ -928,45 +1076,65 @@ def _projective_pass(source, transform, grid, normals, intrinsics, max_distance,
         ratio = residual / scale
         if abs(ratio) >= 1.0:
             continue
-        weight = (1.0 - ratio * ratio) ** 2
-        j0 = my * nz - mz * ny
-        j1 = mz * nx - mx * nz
-        j2 = mx * ny - my * nx
-        w0, w1, w2, w3, w4, w5 = weight * j0, weight * j1, weight * j2, weight * nx, weight * ny, weight * nz
-        h00 += w0 * j0
-        h01 += w0 * j1
-        h02 += w0 * j2
-        h03 += w0 * nx
-        h04 += w0 * ny
-        h05 += w0 * nz
-        h11 += w1 * j1
-        h12 += w1 * j2
-        h13 += w1 * nx
-        h14 += w1 * ny
-        h15 += w1 * nz
-        h22 += w2 * j2
-        h23 += w2 * nx
-        h24 += w2 * ny
-        h25 += w2 * nz
-        h33 += w3 * nx
-        h34 += w3 * ny
-        h35 += w3 * nz
-        h44 += w4 * ny
-        h45 += w4 * nz
-        h55 += w5 * nz
-        g0 += w0 * residual
-        g1 += w1 * residual
-        g2 += w2 * residual
-        g3 += w3 * residual
-        g4 += w4 * residual
-        g5 += w5 * residual
-    information = np.array([
-        [h00, h01, h02, h03, h04, h05],
-        [h01, h11, h12, h13, h14, h15],
-        [h02, h12, h22, h23, h24, h25],
-        [h03, h13, h23, h33, h34, h35],
-        [h04, h14, h24, h34, h44, h45],
-        [h05, h15, h25, h35, h45, h55],
-    ])
-    gradient = np.array([g0, g1, g2, g3, g4, g5])
-    return information, gradient, count
+        inliers += 1
+        squares += residual * residual
+        rows[0, filled] = my * nz - mz * ny
+        rows[1, filled] = mz * nx - mx * nz
+        rows[2, filled] = mx * ny - my * nx
+        rows[3, filled] = nx
+        rows[4, filled] = ny
+        rows[5, filled] = nz
+        rows[6, filled] = residual
+        rows[7, filled] = (1.0 - ratio * ratio) ** 2
+        filled += 1
+        if filled == rows.shape[1]:
+            _accumulate(rows, filled, sums)
+            filled = 0
+    _accumulate(rows, filled, sums)
+    information = np.empty((6, 6))
+    for a in range(6):
+        for b in range(a, 6):
+            information[a, b] = information[b, a] = sums[a, b]
+    return information, sums[:, 6].copy(), count, inliers, squares
+
+
+@numba.njit(**_JIT_SUMS)
+def _accumulate(rows, filled, sums):  # pragma: no cover - compiled
+    """Add sum_k w_k J_ka J_kb (b < 6) and sum_k w_k J_ka r_k (b = 6) of the first ``filled`` columns to ``sums``, a <= b."""
+    weights = rows[7]
+    for a in range(6):
+        for b in range(a, 7):
+            total = 0.0
+            for k in range(filled):
+                total += weights[k] * rows[a, k] * rows[b, k]
+            sums[a, b] += total
+
+
+@numba.njit(**_JIT)
+def _projective_level(
+    source, transform, grid, normals, intrinsics, max_distance, scale, max_iterations, rotation_tolerance,
+    translation_tolerance, min_inliers,
+):  # pragma: no cover - compiled
+    """One coarse-to-fine level of projective point-to-plane ICP: Gauss-Newton steps until one is below the tolerances.
+
+    Each pass weighs its pairs with the robust scale of the previous pass's
+    residuals. Returns (transform, scale, iterations, converged, pairs of
+    the last pass); a pass with fewer than ``min_inliers`` pairs ends the
+    level there.
+    """
+    residuals = np.empty(source.shape[0])
+    rows = np.empty((8, _CHUNK))
+    count = iteration = 0
+    converged = False
+    while iteration < max_iterations and not converged:
+        information, gradient, count, _, _ = _projective_pass(
+            source, transform, grid, normals, intrinsics, max_distance, scale, residuals, rows
+        )
+        if count < min_inliers:
+            break
+        scale = _robust_scale(residuals[:count], max_distance)
+        delta = _solve(information, gradient)
+        transform = _compose(_exp(delta), transform)
+        converged = _converged(delta, rotation_tolerance, translation_tolerance)
+        iteration += 1
+    return transform, scale, iteration, converged, count
