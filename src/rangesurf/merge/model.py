@@ -339,7 +339,7 @@ class GlobalModel:
             normal = normal / np.linalg.norm(normal)
             plane = np.r_[normal, -normal @ points.mean(axis=0)]
             observations = _observations(surface, points, normal, bounded)
-            candidates = self._candidates(plane, points, self._reach(observations.variance))
+            candidates = self._candidates(plane, points, self._reach(observations))
             if not candidates:
                 continue
             patch = self.patches[max(candidates)[1]]
@@ -433,9 +433,9 @@ class GlobalModel:
             self.cells_carved += removed
         return removed
 
-    def _reach(self, variance: np.ndarray) -> float:
-        """How far (metres) observations with these variances may lie from a patch's plane and still be on it."""
-        return self.max_plane_distance or max(3.0 * float(np.sqrt(np.median(variance))), 2.0 * self.cell_size)
+    def _reach(self, observations: Observations) -> float:
+        """How far (metres) these observations may lie from a patch's plane and still be on it."""
+        return self.max_plane_distance or max(3.0 * math.sqrt(observations.median_variance()), 2.0 * self.cell_size)
 
     def _candidates(self, plane: np.ndarray, points: np.ndarray, reach: float) -> list[tuple[int, int]]:
         """(cells touched, index) of the patches a planar surface's world points continue."""
@@ -465,14 +465,14 @@ class GlobalModel:
         return candidates
 
     def _merge(self, plane: np.ndarray, observations: Observations, frame: int, counts: dict[str, int]) -> None:
-        reach = self._reach(observations.variance)
+        reach = self._reach(observations)
         cosine = math.cos(math.radians(self.max_normal_angle))
         candidates = self._candidates(plane, observations.points, reach)
         if not candidates:
             patch = PlanarPatch.from_plane(plane, observations.points, self.cell_size)
             self.patches.append(patch)
             self._normals = None
-            _, added = patch.fuse(observations, frame)
+            _, added, _ = patch.fuse(observations, frame)
             counts["created"] += 1
             counts["cells_added"] += added
             return
@@ -488,12 +488,11 @@ class GlobalModel:
             self.patches = [patch for patch in self.patches if all(patch is not other for other in joined)]
             self._normals = None
             counts["joined"] += len(joined)
-        near = target.distance_to(observations.points) <= reach
-        updated, added = target.fuse(observations.subset(near), frame)
+        updated, added, rejected = target.fuse(observations, frame, reach=reach)
         counts["fused"] += 1
         counts["cells_updated"] += updated
         counts["cells_added"] += added
-        counts["rejected"] += int((~near).sum())
+        counts["rejected"] += rejected
 
     # ------------------------------------------------------------------
     # Output.
@@ -704,19 +703,15 @@ def _default_cell_size(surfaces: list[Surface]) -> float:
 
 
 def _observations(surface: Surface, points: np.ndarray, normal: np.ndarray, covariance: np.ndarray | None) -> Observations:
-    count = surface.n_vertices
-    zero = np.zeros(count)
-    noise = surface.uncertainty["UL1"].astype(np.float64) ** 2 if "UL1" in surface.uncertainty else zero
-    fit = surface.uncertainty["UL2"].astype(np.float64) ** 2 if "UL2" in surface.uncertainty else zero
-    registration = zero
-    if covariance is not None:
-        # Unconstrained directions of a degenerate registration (inf) count as 100 m (rad) standard deviations:
-        # vertices they move get next to no weight, vertices they do not move are unaffected.
-        bounded = np.where(np.isfinite(covariance), covariance, _UNCONSTRAINED_VARIANCE)
-        registration = _registration_variance(np.ascontiguousarray(points, np.float64), np.asarray(normal, np.float64), bounded)
-    noise = np.nan_to_num(noise, nan=0.0)
-    fit = np.nan_to_num(fit, nan=0.0)
-    return Observations(points, noise, fit, np.maximum(registration, 0.0))
+    empty = np.zeros(0, np.float32)
+    # Unconstrained directions of a degenerate registration (inf) count as 100 m (rad) standard deviations:
+    # vertices they move get next to no weight, vertices they do not move are unaffected.
+    bounded = np.zeros((6, 6)) if covariance is None else np.where(np.isfinite(covariance), covariance, _UNCONSTRAINED_VARIANCE)
+    points = np.ascontiguousarray(points, np.float64)
+    noise, fit, registration, median = _variances(
+        points, surface.uncertainty.get("UL1", empty), surface.uncertainty.get("UL2", empty),
+        np.asarray(normal, np.float64), bounded)
+    return Observations(points, noise, fit, registration, median)
 
 
 def _moved(surface: Surface, points: np.ndarray, rotation: np.ndarray) -> Surface:
@@ -728,12 +723,20 @@ def _moved(surface: Surface, points: np.ndarray, rotation: np.ndarray) -> Surfac
 
 
 @numba.njit(**_JIT)
-def _registration_variance(points, normal, covariance):  # pragma: no cover - compiled
-    """Per point, the variance along ``normal`` that a pose covariance (rotation, translation) gives it."""
-    variance = np.empty(points.shape[0])
-    for k in range(points.shape[0]):
-        variance[k] = variance_along(points[k, 0], points[k, 1], points[k, 2], normal[0], normal[1], normal[2], covariance)
-    return variance
+def _variances(points, ul1, ul2, normal, covariance):  # pragma: no cover - compiled
+    """Per point, the noise (UL1^2), fit (UL2^2) and registration variances along ``normal`` (an absent
+    level -- an empty array -- or a NaN counts as 0), and the median of their sum."""
+    count = points.shape[0]
+    noise, fit, registration = np.zeros(count), np.zeros(count), np.zeros(count)
+    for k in range(count):
+        if len(ul1) and ul1[k] == ul1[k]:
+            noise[k] = np.float64(ul1[k]) ** 2
+        if len(ul2) and ul2[k] == ul2[k]:
+            fit[k] = np.float64(ul2[k]) ** 2
+        registration[k] = max(variance_along(points[k, 0], points[k, 1], points[k, 2], normal[0], normal[1], normal[2],
+                                             covariance), 0.0)
+    median = np.median(noise + fit + registration) if count else 0.0
+    return noise, fit, registration, median
 
 
 @numba.njit(**_JIT)

@@ -73,13 +73,17 @@ class Observations:
     noise: np.ndarray
     fit: np.ndarray
     registration: np.ndarray
+    _median: float | None = field(default=None, repr=False)
 
     @property
     def variance(self) -> np.ndarray:
         return self.noise + self.fit + self.registration
 
-    def subset(self, keep: np.ndarray) -> Observations:
-        return Observations(self.points[keep], self.noise[keep], self.fit[keep], self.registration[keep])
+    def median_variance(self) -> float:
+        """The median of the total variances (m^2)."""
+        if self._median is None:
+            self._median = float(np.median(self.variance)) if len(self.points) else 0.0
+        return self._median
 
 
 @dataclass
@@ -286,28 +290,34 @@ class PlanarPatch:
     # Fusion.
     # ------------------------------------------------------------------
 
-    def fuse(self, observations: Observations, frame: int) -> tuple[int, int]:
-        """Add observed vertices to their cells; returns (cells updated, cells added)."""
+    def fuse(self, observations: Observations, frame: int, *, reach: float = np.inf) -> tuple[int, int, int]:
+        """Add observed vertices to their cells; returns (cells updated, cells added, vertices left out).
+
+        Vertices farther than ``reach`` (metres) from the patch's fitted
+        plane are left out.
+        """
         count = len(observations.points)
         if count == 0:
-            return 0, 0
+            return 0, 0, 0
         points = np.ascontiguousarray(observations.points, np.float64)
         noise, fit, registration = (np.ascontiguousarray(values, np.float64)
                                     for values in (observations.noise, observations.fit, observations.registration))
+        plane = self.world_plane() if np.isfinite(reach) else np.zeros(4)
         self._stamp += 1
-        updated = added = 0
+        updated = added = rejected = 0
         start = 0
         while start < count:
             # The kernel stops when the storage is full; it doubles then (not before: a large patch
             # seen again needs few new cells, and room for every point would double it needlessly).
             self._grow(self._count + 1)
-            start, self._count, new_updated, new_added = _fuse_points(
-                points, noise, fit, registration, self.origin, self.axes, self.cell_size, start, self._coords,
-                self._cells, self._count, self._table_keys, self._table_slots, self._stamps, self._stamp, self._misses,
-                self.moments)
+            start, self._count, new_updated, new_added, new_rejected = _fuse_points(
+                points, noise, fit, registration, plane, float(reach), self.origin, self.axes, self.cell_size, start,
+                self._coords, self._cells, self._count, self._table_keys, self._table_slots, self._stamps, self._stamp,
+                self._misses, self.moments)
             updated += new_updated
             added += new_added
-        return self._fused(frame, updated, added)
+            rejected += new_rejected
+        return (*self._fused(frame, updated, added), rejected)
 
     def absorb(self, other: PlanarPatch, frame: int) -> tuple[int, int]:
         """Fuse another patch's cells into this one (two patches found to be one plane).
@@ -540,17 +550,22 @@ def _touching(points, origin, axes, cell_size, reach, table_keys, table_slots): 
 
 
 @numba.njit(**_JIT)
-def _fuse_points(points, noise, fit, registration, origin, axes, cell_size, start, coords, cells, count, table_keys,
-                 table_slots, stamps, stamp, misses, moments):  # pragma: no cover - compiled
-    """`PlanarPatch.fuse` from point ``start`` on, in one pass: each point into the patch frame, its weight
-    1 / (total variance), its sums (the `CELL_FIELDS`) into its cell and the patch's plane-fit moments.
+def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, cell_size, start, coords, cells, count,
+                 table_keys, table_slots, stamps, stamp, misses, moments):  # pragma: no cover - compiled
+    """`PlanarPatch.fuse` from point ``start`` on, in one pass: each point within ``reach`` of ``plane``
+    into the patch frame, its weight 1 / (total variance), its sums (the `CELL_FIELDS`) into its cell and
+    the patch's plane-fit moments.
 
     Stops early like `_accumulate_cells` (which it mirrors, for fusion's own sums) when the storage is
-    full; returns (next point, cell count, cells updated, cells added).
+    full; returns (next point, cell count, cells updated, cells added, points beyond reach).
     """
     updated = 0
     added = 0
+    rejected = 0
     for k in range(start, points.shape[0]):
+        if abs(points[k, 0] * plane[0] + points[k, 1] * plane[1] + points[k, 2] * plane[2] + plane[3]) > reach:
+            rejected += 1
+            continue
         dx, dy, dz = points[k, 0] - origin[0], points[k, 1] - origin[1], points[k, 2] - origin[2]
         u = dx * axes[0, 0] + dy * axes[0, 1] + dz * axes[0, 2]
         v = dx * axes[1, 0] + dy * axes[1, 1] + dz * axes[1, 2]
@@ -559,7 +574,7 @@ def _fuse_points(points, noise, fit, registration, origin, axes, cell_size, star
         slot = lookup(table_keys, table_slots, column, row, 0)
         if slot < 0:
             if count >= coords.shape[0]:
-                return k, count, updated, added
+                return k, count, updated, added, rejected
             slot = count
             count += 1
             coords[slot, 0], coords[slot, 1], coords[slot, 2] = column, row, 0
@@ -591,7 +606,7 @@ def _fuse_points(points, noise, fit, registration, origin, axes, cell_size, star
         moments[6] += wv * v
         moments[7] += wu * h
         moments[8] += wv * h
-    return points.shape[0], count, updated, added
+    return points.shape[0], count, updated, added, rejected
 
 
 @numba.njit(**_JIT)
