@@ -459,9 +459,11 @@ class GlobalModel:
                 continue
             if _median_distance(points, step, patch.world_plane()) > reach:
                 continue
-            touching = patch.touching(points, self.bridge + 1)
-            if touching >= self.min_overlap:
-                candidates.append((touching, int(index)))
+            if patch.touching(points, self.bridge + 1, enough=self.min_overlap) >= self.min_overlap:
+                candidates.append((self.min_overlap, int(index)))
+        if len(candidates) > 1:
+            # Ranked by how much of the surface touches each (the first is the one it continues).
+            candidates = [(self.patches[index].touching(points, self.bridge + 1), index) for _, index in candidates]
         return candidates
 
     def _merge(self, plane: np.ndarray, observations: Observations, frame: int, counts: dict[str, int]) -> None:

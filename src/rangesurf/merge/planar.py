@@ -277,14 +277,18 @@ class PlanarPatch:
         plane = self.world_plane()
         return np.abs(np.asarray(points, np.float64) @ plane[:3] + plane[3])
 
-    def touching(self, points: np.ndarray, reach: int) -> int:
-        """How many of the points' cells are occupied, or within ``reach`` cells of an occupied one."""
+    def touching(self, points: np.ndarray, reach: int, *, enough: int = 0) -> int:
+        """How many of the points' cells are occupied, or within ``reach`` cells of an occupied one.
+
+        With ``enough`` > 0 the count stops there (whether a surface touches
+        the patch at all needs only a few points).
+        """
         if self.n_cells == 0 or len(points) == 0:
             return 0
         # Hash lookups around each point's cell, the occupied one first: cheaper than an occupancy image
         # of the whole patch once patches are large.
         return int(_touching(np.ascontiguousarray(points, np.float64), self.origin, self.axes, self.cell_size, int(reach),
-                             self._table_keys, self._table_slots))
+                             self._table_keys, self._table_slots, int(enough)))
 
     # ------------------------------------------------------------------
     # Fusion.
@@ -527,10 +531,13 @@ def _moments(weight: np.ndarray, u: np.ndarray, v: np.ndarray, h: np.ndarray) ->
 
 
 @numba.njit(**_JIT)
-def _touching(points, origin, axes, cell_size, reach, table_keys, table_slots):  # pragma: no cover - compiled
-    """Points whose cell in the patch frame has an occupied cell within ``reach`` cells (chessboard distance)."""
+def _touching(points, origin, axes, cell_size, reach, table_keys, table_slots, enough):  # pragma: no cover - compiled
+    """Points whose cell in the patch frame has an occupied cell within ``reach`` cells (chessboard distance),
+    counted up to ``enough`` (all when 0)."""
     count = 0
     for k in range(points.shape[0]):
+        if count == enough > 0:
+            break
         dx, dy, dz = points[k, 0] - origin[0], points[k, 1] - origin[1], points[k, 2] - origin[2]
         column = np.int32(np.floor((dx * axes[0, 0] + dy * axes[0, 1] + dz * axes[0, 2]) / cell_size))
         row = np.int32(np.floor((dx * axes[1, 0] + dy * axes[1, 1] + dz * axes[1, 2]) / cell_size))
