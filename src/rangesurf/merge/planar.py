@@ -415,6 +415,9 @@ class PlanarPatch:
         rotation = np.ascontiguousarray(T_sensor_world[:3, :3], np.float64)
         translation = np.ascontiguousarray(T_sensor_world[:3, 3], np.float64)
         fx, fy, cx, cy = (float(value) for value in intrinsics)
+        low, high = self.bounds()
+        if not _box_in_view(low, high, rotation, translation, fx, fy, cx, cy, *ranges.shape):
+            return 0
         removed = _check_seen_through(self.origin, self.axes, self._cells, self._count, self._misses, rotation,
                                       translation, fx, fy, cx, cy, ranges, range_sigma, pose_covariance,
                                       float(sigmas), 2.0 * self.cell_size, int(checks))
@@ -663,6 +666,32 @@ def variance_along(x, y, z, nx, ny, nz, covariance):  # pragma: no cover - compi
             row += covariance[i, j] * jacobian[j]
         total += jacobian[i] * row
     return total
+
+
+@numba.njit(**_JIT)
+def _box_in_view(low, high, rotation, translation, fx, fy, cx, cy, height, width):  # pragma: no cover - compiled
+    """Whether any of a world box can project into the image (False only when it surely cannot)."""
+    left = top = np.inf
+    right = bottom = -np.inf
+    in_front = False
+    for corner in range(8):
+        wx = high[0] if corner & 1 else low[0]
+        wy = high[1] if corner & 2 else low[1]
+        wz = high[2] if corner & 4 else low[2]
+        x = rotation[0, 0] * wx + rotation[0, 1] * wy + rotation[0, 2] * wz + translation[0]
+        y = rotation[1, 0] * wx + rotation[1, 1] * wy + rotation[1, 2] * wz + translation[1]
+        z = rotation[2, 0] * wx + rotation[2, 1] * wy + rotation[2, 2] * wz + translation[2]
+        if z <= 0.0:
+            # A corner at or behind the sensor: the box's image is unbounded unless all of it is behind.
+            left, right, top, bottom = -np.inf, np.inf, -np.inf, np.inf
+            continue
+        in_front = True
+        column, row = fx * x / z + cx, fy * y / z + cy
+        left, right = min(left, column), max(right, column)
+        top, bottom = min(top, row), max(bottom, row)
+    if not in_front:
+        return False  # all of it behind the sensor
+    return right >= 0.0 and left <= width - 1 and bottom >= 0.0 and top <= height - 1
 
 
 @numba.njit(**_JIT)
