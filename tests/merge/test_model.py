@@ -133,6 +133,32 @@ def test_a_segment_between_two_planes_does_not_join_them():
     assert angles == pytest.approx([0.0, 13.0], abs=1.5)
 
 
+def _misfit(x_range, angle_deg=30.0):
+    """Points on the plane z = 2 (a 1 mm noisy strip over x_range) whose segment reports a normal ``angle_deg`` off."""
+    rng = np.random.default_rng(5)
+    rows, cols = np.mgrid[0:0.3:0.02, x_range[0]:x_range[1]:0.02]
+    vertices = np.column_stack([cols.ravel(), rows.ravel(), 2.0 + 0.001 * rng.standard_normal(cols.size)])
+    angle = np.radians(angle_deg)
+    normal = np.array([np.sin(angle), 0.0, -np.cos(angle)])
+    plane = np.r_[normal, -normal @ vertices.mean(axis=0)]
+    count = len(vertices)
+    return Surface(vertices, np.zeros((0, 3), np.int32), np.tile(normal, (count, 1)), np.full((count, 2), -1),
+                   plane=plane, uncertainty={"UL1": np.full(count, 0.001)})
+
+
+def test_a_segment_with_a_wrong_normal_over_a_patch_is_a_view_of_it():
+    """A strip of the floor whose segment claims a normal 30 degrees off: fused into the floor, no new patch.
+    The same strip beyond the floor's cells (new area), or a panel really rising 30 degrees, starts its own."""
+    model = GlobalModel(cell_size=0.02)
+    model.add_frame([_panel(0.0, (0.0, 1.0))], np.eye(4))
+    seen_again = model.add_frame([_misfit((0.2, 0.6))], np.eye(4))
+    assert seen_again.created == 0 and seen_again.fused == 1 and seen_again.cells_added == 0
+    assert len(model.patches) == 1 and model.patches[0].world_plane()[2] == pytest.approx(-1.0, abs=1e-6)
+    beyond = model.add_frame([_misfit((1.2, 1.6))], np.eye(4))
+    rising = model.add_frame([_panel(30.0, (1.0, 1.4))], np.eye(4))
+    assert beyond.created == 1 and rising.created == 1
+
+
 @pytest.fixture(scope="module")
 def arena_run():
     frames, truths = simulate.simulate_sequence("arena", "sr3000", 12, seed=3)

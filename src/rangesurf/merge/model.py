@@ -48,6 +48,10 @@ _ALIGN_MIN_VERTICES = 30
 _ALIGN_POINTS = 200
 _ALIGN_INDEPENDENT = 3.0
 _ALIGN_GATE = 20.0
+# A surface whose normal is up to this many degrees off a patch's, lying on its plane and over its cells
+# (this share of its points), is a view of the patch (`GlobalModel._covered_by`).
+_COVER_ANGLE = 45.0
+_COVERED = 0.8
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
@@ -437,12 +441,11 @@ class GlobalModel:
         """How far (metres) these observations may lie from a patch's plane and still be on it."""
         return self.max_plane_distance or max(3.0 * math.sqrt(observations.median_variance()), 2.0 * self.cell_size)
 
-    def _candidates(self, plane: np.ndarray, points: np.ndarray, reach: float) -> list[tuple[int, int]]:
-        """(cells touched, index) of the patches a planar surface's world points continue."""
-        cosine = math.cos(math.radians(self.max_normal_angle))
-        candidates = []
+    def _nearby(self, plane: np.ndarray, points: np.ndarray, reach: float, angle: float) -> list[int]:
+        """Indices of the patches within ``angle`` degrees of a surface's normal, whose box comes within
+        touching distance of its world points and whose plane they lie on (median distance within reach)."""
         if not self.patches:
-            return candidates
+            return []
         if self._normals is None or len(self._normals) != len(self.patches):
             self._normals = np.array([patch.normal for patch in self.patches])
         # The median distance from a plane is as well known from 2,000 points as from all of them.
@@ -452,24 +455,52 @@ class GlobalModel:
         margin = reach + (self.bridge + 2) * self.cell_size
         low, high = _bounding_box(points)
         low, high = low - margin, high + margin
-        for index in np.flatnonzero(self._normals @ plane[:3] >= cosine):
+        nearby = []
+        for index in np.flatnonzero(self._normals @ plane[:3] >= math.cos(math.radians(angle))):
             patch = self.patches[index]
             patch_low, patch_high = patch.bounds()
             if (patch_low > high).any() or (patch_high < low).any():
                 continue
-            if _median_distance(points, step, patch.world_plane()) > reach:
-                continue
-            if patch.touching(points, self.bridge + 1, enough=self.min_overlap) >= self.min_overlap:
-                candidates.append((self.min_overlap, int(index)))
+            if _median_distance(points, step, patch.world_plane()) <= reach:
+                nearby.append(int(index))
+        return nearby
+
+    def _candidates(self, plane: np.ndarray, points: np.ndarray, reach: float) -> list[tuple[int, int]]:
+        """(cells touched, index) of the patches a planar surface's world points continue."""
+        candidates = [(self.min_overlap, index) for index in self._nearby(plane, points, reach, self.max_normal_angle)
+                      if self.patches[index].touching(points, self.bridge + 1, enough=self.min_overlap) >= self.min_overlap]
         if len(candidates) > 1:
             # Ranked by how much of the surface touches each (the first is the one it continues).
             candidates = [(self.patches[index].touching(points, self.bridge + 1), index) for _, index in candidates]
         return candidates
 
+    def _covered_by(self, plane: np.ndarray, points: np.ndarray, reach: float) -> int | None:
+        """The index of the patch a surface with a doubtful normal merely sees again, if any.
+
+        A small or noisy segment's fitted normal can be tens of degrees off
+        while its points lie on a patch's plane, over cells the patch
+        already has; it is a view of that patch, not a new surface (which
+        would add a patch, and vertices, every time). Taken when, with the
+        normal up to `_COVER_ANGLE` off, the points lie on the patch's plane
+        and `_COVERED` of them fall into its occupied cells: a surface of
+        its own meeting the patch at a crease does not lie over the patch's
+        cells.
+        """
+        best, most = None, 0
+        for index in self._nearby(plane, points, reach, _COVER_ANGLE):
+            inside = self.patches[index].touching(points, 0)
+            if inside >= _COVERED * len(points) and inside > most:
+                best, most = index, inside
+        return best
+
     def _merge(self, plane: np.ndarray, observations: Observations, frame: int, counts: dict[str, int]) -> None:
         reach = self._reach(observations)
         cosine = math.cos(math.radians(self.max_normal_angle))
         candidates = self._candidates(plane, observations.points, reach)
+        if not candidates:
+            covering = self._covered_by(plane, observations.points, reach)
+            if covering is not None:
+                candidates = [(0, covering)]
         if not candidates:
             patch = PlanarPatch.from_plane(plane, observations.points, self.cell_size)
             self.patches.append(patch)
