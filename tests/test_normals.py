@@ -7,12 +7,14 @@ from rangesurf import simulate
 from rangesurf.denoise import denoise_range
 from rangesurf.edges import surface_boundaries
 from rangesurf.frame import PinholeProjection, get_sensor
+from rangesurf._grid import point_ranges
 from rangesurf._planefit import add_point
 from rangesurf.normals import (
     _box_normals_reference,
     _inverse_depth_reference,
     _plane_fit_reference,
     _plane_normal,
+    _spikes_and_jumps,
     depth_discontinuities,
     estimate_normals,
     normal_angle_error,
@@ -219,3 +221,83 @@ def test_degenerate_frames_give_nan_not_errors(shape, pinhole):
 def test_angle_error_shapes_must_match():
     with pytest.raises(ValueError, match="same"):
         normal_angle_error(np.zeros((2, 2, 3)), np.zeros((2, 3, 3)))
+
+
+def test_point_ranges_match_numpy_and_count_infinities():
+    rng = np.random.default_rng(3)
+    points = rng.normal(size=(30, 40, 3)).astype(np.float32)
+    points[rng.random((30, 40)) < 0.1] = np.nan
+    points[2, 3] = 0.0
+    points[4, 5, 1] = np.inf
+    points[6, 7] = (np.nan, -np.inf, 1.0)
+    distance, valid, n_infinite = point_ranges(points)
+    squared = (points.astype(np.float64) ** 2).sum(axis=2)
+    expected_valid = (squared > 0) & np.isfinite(squared)
+    assert np.array_equal(valid, expected_valid)
+    assert np.allclose(distance[valid], np.sqrt(squared[valid]), rtol=1e-6)
+    assert np.isnan(distance[~valid]).all()
+    assert n_infinite == 2
+
+
+def spikes_and_jumps_reference(distance, valid, sigma, depth_jump):
+    """``(clean, jumps)`` by the rules `depth_discontinuities` states, pixel by pixel."""
+    height, width = distance.shape
+    noise = np.where(np.isnan(sigma), 0.0, 16.0 * sigma.astype(np.float32) ** 2).astype(np.float32)
+
+    def jump(a, b, limit, step):
+        relative = depth_jump * min(distance[a], distance[b])
+        return ((distance[a] - distance[b]) / step) ** 2 > max(relative**2, limit)
+
+    def ramp(i, j, di, dj):
+        before, after = (i - di, j - dj), (i + 2 * di, j + 2 * dj)
+        if min(before) < 0 or after[0] >= height or after[1] >= width or not (valid[before] and valid[after]):
+            return False
+        step = distance[i + di, j + dj] - distance[i, j]
+        others = (distance[i, j] - distance[before], distance[after] - distance[i + di, j + dj])
+        return all(o * step > 0 and 0.5 * abs(step) <= abs(o) <= 2.0 * abs(step) for o in others)
+
+    pairs = []
+    for i in range(height):
+        for j in range(width):
+            for di, dj in ((0, 1), (1, 0)):
+                q = (i + di, j + dj)
+                if q[0] < height and q[1] < width and valid[i, j] and valid[q]:
+                    if jump((i, j), q, noise[i, j] + noise[q], 1.0) and not ramp(i, j, di, dj):
+                        pairs.append(((i, j), q))
+    count = np.zeros((height, width), int)
+    for a, b in pairs:
+        count[a] += 1
+        count[b] += 1
+    clean = valid & (count < 3)
+    jumps = np.zeros((height, width), bool)
+    for a, b in pairs:
+        if clean[a] and clean[b]:
+            jumps[a] = jumps[b] = True
+    for i in range(height):
+        for j in range(width):
+            for di, dj in ((0, 1), (1, 0)):
+                b = (i + 2 * di, j + 2 * dj)
+                if b[0] < height and b[1] < width and clean[i, j] and not valid[i + di, j + dj] and clean[b]:
+                    if jump((i, j), b, noise[i, j] + noise[b], 2.0):
+                        jumps[i, j] = jumps[b] = True
+    return clean, jumps
+
+
+@pytest.mark.parametrize("with_sigma", [True, False])
+def test_spikes_and_jumps_match_reference(with_sigma):
+    rng = np.random.default_rng(5)
+    rows, cols = np.mgrid[0:40, 0:50]
+    # A wall with a box in front, a floor-like ramp, holes, and spikes.
+    distance = np.where((rows > 10) & (rows < 25) & (cols > 15) & (cols < 30), 1.5, 3.0)
+    distance = np.where(rows > 32, 2.0 + 0.08 * (rows - 32), distance) + rng.normal(0, 0.003, rows.shape)
+    distance[rng.random(rows.shape) < 0.03] = np.nan
+    spikes = rng.random(rows.shape) < 0.02
+    distance[spikes] *= 1.5
+    distance = distance.astype(np.float32)
+    valid = np.isfinite(distance)
+    sigma = np.full(rows.shape, 0.01 if with_sigma else np.nan)
+    clean, jumps, sigma_ok = _spikes_and_jumps(distance, valid, sigma, 0.05, with_sigma)
+    expected_clean, expected_jumps = spikes_and_jumps_reference(distance, valid, sigma, 0.05)
+    assert sigma_ok
+    assert np.array_equal(clean, expected_clean) and np.array_equal(jumps, expected_jumps)
+    assert (valid & ~clean).any() and jumps.any()

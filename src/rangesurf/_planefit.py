@@ -11,7 +11,7 @@ import math
 import numba
 import numpy as np
 
-__all__ = ["add_point", "smallest_eigen", "plane_eigen", "eigenvector", "planes_from_moments", "plane_rms"]
+__all__ = ["add_point", "smallest_eigen", "plane_eigen", "eigenvector", "planes_from_moments", "planes_kernel", "plane_rms"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
@@ -127,11 +127,12 @@ def planes_from_moments(moments: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         Root-mean-square point-to-plane distance; NaN likewise.
     """
     moments = np.ascontiguousarray(np.atleast_2d(np.asarray(moments, dtype=np.float64)))
-    return _planes_kernel(moments)
+    return planes_kernel(moments)
 
 
 @numba.njit(**_JIT)
-def _planes_kernel(moments):  # pragma: no cover - compiled
+def planes_kernel(moments):  # pragma: no cover - compiled
+    """`planes_from_moments` on a C-contiguous float64 array (for other kernels to call)."""
     count = moments.shape[0]
     planes = np.full((count, 4), np.nan)
     rms = np.full(count, np.nan)
@@ -152,18 +153,19 @@ def _planes_kernel(moments):  # pragma: no cover - compiled
     return planes, rms
 
 
-def plane_rms(moments: np.ndarray, planes: np.ndarray) -> np.ndarray:
-    """Root-mean-square distance of each point set (moments ``(K, 10)``) to a given plane ``(K, 4)``.
+@numba.njit(**_JIT)
+def plane_rms(moments, planes):  # pragma: no cover - compiled
+    """Root-mean-square distance of each point set (moments ``(K, 10)``) to a given plane ``(K, 4)``, both float64.
 
     ``E[(n . p + d)^2] = n^T E[p p^T] n + 2 d n . E[p] + d^2``, from the moments alone.
     """
-    moments = np.atleast_2d(np.asarray(moments, dtype=np.float64))
-    planes = np.atleast_2d(np.asarray(planes, dtype=np.float64))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        scaled = moments / moments[:, :1]
-    n = planes[:, :3]
-    xx, xy, xz, yy, yz, zz = (scaled[:, k] for k in range(4, 10))
-    quadratic = (n[:, 0] ** 2 * xx + n[:, 1] ** 2 * yy + n[:, 2] ** 2 * zz
-                 + 2 * (n[:, 0] * n[:, 1] * xy + n[:, 0] * n[:, 2] * xz + n[:, 1] * n[:, 2] * yz))
-    mean_square = quadratic + 2 * planes[:, 3] * np.einsum("kj,kj->k", n, scaled[:, 1:4]) + planes[:, 3] ** 2
-    return np.sqrt(np.maximum(mean_square, 0.0))
+    count = moments.shape[0]
+    rms = np.empty(count)
+    for k in range(count):
+        n = moments[k, 0]
+        nx, ny, nz, d = planes[k, 0], planes[k, 1], planes[k, 2], planes[k, 3]
+        quadratic = (nx * nx * (moments[k, 4] / n) + ny * ny * (moments[k, 7] / n) + nz * nz * (moments[k, 9] / n)
+                     + 2.0 * (nx * ny * (moments[k, 5] / n) + nx * nz * (moments[k, 6] / n) + ny * nz * (moments[k, 8] / n)))
+        along = nx * (moments[k, 1] / n) + ny * (moments[k, 2] / n) + nz * (moments[k, 3] / n)
+        rms[k] = math.sqrt(max(quadratic + 2.0 * d * along + d * d, 0.0))
+    return rms

@@ -56,6 +56,7 @@ from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf._grid import pixel_pitch
+from rangesurf._grid import point_ranges as _point_ranges
 from rangesurf._planefit import add_point, eigenvector
 from rangesurf._planefit import smallest_eigen as _smallest_eigen
 from rangesurf.frame import PinholeProjection
@@ -158,7 +159,27 @@ def estimate_normals(
     >>> np.round(normals[20, 25], 3) + 0.0
     array([ 0.,  0., -1.], dtype=float32)
     """
-    points = _point_grid(points)
+    normals, radius, _, _ = _normals_and_ranges(
+        _point_grid(points), projection, method, window, max_window, range_sigma, depth_jump
+    )
+    return (normals, radius) if return_window else normals
+
+
+def _normals_and_ranges(
+    points: np.ndarray,
+    projection: PinholeProjection | None = None,
+    method: str = "adaptive",
+    window: int = 5,
+    max_window: int = 15,
+    range_sigma: ArrayLike | float | None = None,
+    depth_jump: float = 0.05,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """`estimate_normals` of a C-contiguous float32 grid (`_point_grid`): normals, window radius, and the ranges and valid mask.
+
+    The ranges and the valid mask (spikes included) are those of
+    `rangesurf._grid.point_ranges`, which region growing needs too: passing
+    them on saves it a pass over the points.
+    """
     if method not in NORMAL_METHODS:
         raise ValueError(f"method must be one of {NORMAL_METHODS}, got {method!r}")
     window = _check_window(window, "window")
@@ -170,25 +191,24 @@ def estimate_normals(
         check_point_grid(points)  # raises, in the shared wording
     sigma, unchecked = _noise_sigma(range_sigma, distance, valid)
     # A spike would mark its whole neighbourhood as a depth jump and shrink every window near it;
-    # it is a reading to ignore, not an edge. Kernels skip what ``valid`` excludes.
+    # it is a reading to ignore, not an edge. Kernels skip what ``usable`` excludes.
     sigma_or_nan = np.full(distance.shape, np.nan, np.float32) if sigma is None else sigma
-    spikes, jumps, sigma_ok = _spikes_and_jumps(distance, valid, sigma_or_nan, float(depth_jump), unchecked)
+    usable, jumps, sigma_ok = _spikes_and_jumps(distance, valid, sigma_or_nan, float(depth_jump), unchecked)
     if not sigma_ok:
         check_range_sigma(np.where(valid, distance, np.nan), range_sigma)  # raises, in the shared wording
-    valid &= ~spikes
 
     if method == "cross":
-        normals, radius = _cross_normals(points, valid, jumps)
-        return (normals, radius) if return_window else normals
+        normals, radius = _cross_normals(points, usable, jumps)
+        return normals, radius, distance, valid
     sizes = (window,) if method == "box" else _window_ladder(window, max_window)
     if isinstance(projection, PinholeProjection):
-        normals, radius = _inverse_depth_normals(points, distance, valid, jumps, sigma, projection, sizes, float(depth_jump))
-        return (normals, radius) if return_window else normals
+        normals, radius = _inverse_depth_normals(points, distance, usable, jumps, sigma, projection, sizes, float(depth_jump))
+        return normals, radius, distance, valid
 
-    distance = np.where(valid, distance, np.nan)
-    points = np.where(valid[..., None], points, np.nan).astype(np.float32)
-    origin = points[valid].mean(axis=0) if valid.any() else np.zeros(3)
-    moments = _integral_moments(points, valid, origin.astype(np.float64))
+    usable_distance = np.where(usable, distance, np.nan)
+    usable_points = np.where(usable[..., None], points, np.nan).astype(np.float32)
+    origin = usable_points[usable].mean(axis=0) if usable.any() else np.zeros(3)
+    moments = _integral_moments(usable_points, usable, origin.astype(np.float64))
     # Chessboard distance to the nearest jump pixel; a window of radius d - 1 holds none.
     clear = cv2.distanceTransform((~jumps).astype(np.uint8), cv2.DIST_C, 3)
     # With no jump at all the transform is "infinite" (a huge float).
@@ -196,10 +216,10 @@ def estimate_normals(
     if method == "box":
         radius = np.minimum(clear, window // 2)
     else:
-        radius = np.minimum(clear, _adaptive_radius(moments, points, distance, valid, sigma, max_window // 2))
-    radius = np.where(valid, radius, -1).astype(np.int16)
-    normals = _box_normals(moments, points, valid, radius, distance, sigma_or_nan, float(depth_jump), _GATED_RADIUS)
-    return (normals, radius) if return_window else normals
+        radius = np.minimum(clear, _adaptive_radius(moments, usable_points, usable_distance, usable, sigma, max_window // 2))
+    radius = np.where(usable, radius, -1).astype(np.int16)
+    normals = _box_normals(moments, usable_points, usable, radius, usable_distance, sigma_or_nan, float(depth_jump), _GATED_RADIUS)
+    return normals, radius, distance, valid
 
 
 def depth_discontinuities(
@@ -419,33 +439,6 @@ def _adaptive_radius(
 
 
 @numba.njit(**_JIT)
-def _point_ranges(points):  # pragma: no cover - compiled
-    """Distance (H, W) float32 of every point to the sensor (NaN where invalid), the valid mask, and the Inf count.
-
-    `rangesurf._grid.ranges` with the Inf scan of `check_point_grid` folded
-    in: one pass over the points instead of two.
-    """
-    height, width = points.shape[:2]
-    distance = np.empty((height, width), np.float32)
-    valid = np.zeros((height, width), np.bool_)
-    n_infinite = 0
-    for i in range(height):
-        for j in range(width):
-            x = float(points[i, j, 0])
-            y = float(points[i, j, 1])
-            z = float(points[i, j, 2])
-            squared = x * x + y * y + z * z
-            if squared > 0.0 and squared < math.inf:
-                distance[i, j] = math.sqrt(squared)
-                valid[i, j] = True
-            else:
-                distance[i, j] = np.nan
-                if math.isinf(x) or math.isinf(y) or math.isinf(z):
-                    n_infinite += 1
-    return distance, valid, n_infinite
-
-
-@numba.njit(**_JIT)
 def _integral_moments(points, valid, origin):  # pragma: no cover - compiled
     """Integral images (H+1, W+1, 10) of n, x, y, z, xx, xy, xz, yy, yz, zz (points minus ``origin``)."""
     height, width = valid.shape
@@ -564,76 +557,74 @@ def _gated_sums(points, valid, distance, sigma, depth_jump, i, j, radius, sums):
 
 @numba.njit(**_JIT)
 def _spikes_and_jumps(distance, valid, sigma, depth_jump, check_sigma=False):  # pragma: no cover - compiled
-    """Spikes (jump against >= 3 of 4 neighbours), then jumps among the remaining readings.
+    """Readings that are not spikes (a jump against >= 3 of 4 neighbours), then jumps among them.
 
-    ``sigma`` is NaN where there is no noise model. With ``check_sigma`` the
-    third result says whether ``sigma`` is finite and > 0 at every valid
-    pixel (the check of `check_range_sigma`, in the same pass).
+    Returns the valid pixels that are not spikes, the pixels at a jump, and
+    whether ``sigma`` checked out. ``sigma`` is NaN where there is no noise
+    model. With ``check_sigma`` the third result says whether ``sigma`` is
+    finite and > 0 at every valid pixel (the check of `check_range_sigma`,
+    in the same pass).
 
-    Row by row, in branch-free loops (which the compiler vectorises): the
-    candidate jumps between neighbours, then the ramp test on the few
-    candidates; then spikes, and the jumps from the pair flags.
+    Branch-free loops over the flattened grid, on views shifted by a pixel
+    or a row so that each loop indexes by its counter alone (which the
+    compiler vectorises): the candidate jumps between neighbours, then the
+    ramp test on the few candidates; then spikes, and the jumps from the
+    pair flags. The flags are padded so that every pixel's four neighbours
+    are in the arrays; a pair leaving the grid is never flagged.
     """
     height, width = valid.shape
+    size = height * width
+    distance_flat = distance.reshape(size)
+    valid_flat = valid.reshape(size)
+    sigma_flat = sigma.reshape(size)
     # Squared noise limit of each pixel: 16 sigma^2, 0 without a model.
-    noise = np.empty((height, width), np.float32)
+    noise = np.empty(size, np.float32)
     bad_sigma = 0
-    for i in range(height):
-        sigma_row = sigma[i]
-        valid_row = valid[i]
-        noise_row = noise[i]
-        for j in range(width):
-            here = sigma_row[j]
-            noise_row[j] = 16.0 * here * here if here == here else 0.0
-            bad_sigma += valid_row[j] & ~((here > 0.0) & (here < math.inf))
-    # Pair flags: (i, j) - (i, j + 1) and (i, j) - (i + 1, j).
-    across = np.zeros((height, width), np.bool_)
-    down = np.zeros((height, width), np.bool_)
-    for i in range(height):
-        if width > 1:
-            _pair_jumps(distance[i, :-1], distance[i, 1:], noise[i, :-1], noise[i, 1:], valid[i, :-1], valid[i, 1:], depth_jump, across[i, :-1])
-            for j in range(width - 1):
-                if across[i, j] and _is_ramp(distance, valid, i, j, 0, 1):
-                    across[i, j] = False
-        if i + 1 < height:
-            _pair_jumps(distance[i], distance[i + 1], noise[i], noise[i + 1], valid[i], valid[i + 1], depth_jump, down[i])
-            for j in range(width):
-                if down[i, j] and _is_ramp(distance, valid, i, j, 1, 0):
-                    down[i, j] = False
-    # Spikes: a jump against three or four neighbours. Clean: valid and not a spike.
-    spikes = np.zeros((height, width), np.bool_)
-    clean = np.zeros((height, width), np.bool_)
-    for i in range(height):
-        for j in range(width):
-            count = np.int32(across[i, j]) + np.int32(down[i, j])
-            if j > 0:
-                count += across[i, j - 1]
-            if i > 0:
-                count += down[i - 1, j]
-            spikes[i, j] = count >= 3
-            clean[i, j] = valid[i, j] & (count < 3)
+    for k in range(size):
+        here = sigma_flat[k]
+        noise[k] = 16.0 * here * here if here == here else 0.0
+        bad_sigma += valid_flat[k] & ~((here > 0.0) & (here < math.inf))
+    # Pair flags, padded: pixel k and its right neighbour at across[k + 1], pixel k and the one below at
+    # down[k + width]. Every shifted index goes through a view, indexed by the loop counter alone (an
+    # access at k + width gets a wrap-around test, since width might be negative, and stays scalar).
+    across = np.zeros(size + 1, np.bool_)
+    down = np.zeros(size + 2 * width, np.bool_)
+    right_pair = across[1:]
+    below_pair = down[width:]
+    _pair_jumps(distance_flat[:-1], distance_flat[1:], noise[:-1], noise[1:], valid_flat[:-1], valid_flat[1:],
+                depth_jump, right_pair[:-1])
+    for i in range(1, height + 1):
+        across[i * width] = False  # the last pixel of a row has no right neighbour
+    _pair_jumps(distance_flat[:-width], distance_flat[width:], noise[:-width], noise[width:], valid_flat[:-width],
+                valid_flat[width:], depth_jump, below_pair[: size - width])
+    for k in range(size):
+        if right_pair[k] | below_pair[k]:  # one test for the common case, neither
+            i, j = k // width, k % width
+            if right_pair[k] and _is_ramp(distance, valid, i, j, 0, 1):
+                right_pair[k] = False
+            if below_pair[k] and _is_ramp(distance, valid, i, j, 1, 0):
+                below_pair[k] = False
+    # Spikes: a jump against three or four neighbours. Clean: valid and not a spike (pixel k at clean[k + width]).
+    clean = np.zeros(size + 2 * width, np.bool_)
+    _clean_flags(right_pair[:size], across[:size], below_pair[:size], down[:size], valid_flat, clean[width : width + size])
     # Jumps: both pixels of a flagged pair, if both are clean.
-    jumps = np.zeros((height, width), np.bool_)
-    for i in range(height):
-        for j in range(width):
-            if not clean[i, j]:
-                continue
-            if across[i, j] and clean[i, j + 1]:
-                jumps[i, j] = True
-                jumps[i, j + 1] = True
-            if down[i, j] and clean[i + 1, j]:
-                jumps[i, j] = True
-                jumps[i + 1, j] = True
-            # Across one missing pixel (rare: tested here, not in the loops above).
-            if j + 2 < width and not valid[i, j + 1] and clean[i, j + 2]:
-                if _is_jump(distance[i, j], distance[i, j + 2], noise[i, j] + noise[i, j + 2], depth_jump, 2.0):
-                    jumps[i, j] = True
-                    jumps[i, j + 2] = True
-            if i + 2 < height and not valid[i + 1, j] and clean[i + 2, j]:
-                if _is_jump(distance[i, j], distance[i + 2, j], noise[i, j] + noise[i + 2, j], depth_jump, 2.0):
-                    jumps[i, j] = True
-                    jumps[i + 2, j] = True
-    return spikes, jumps, not (check_sigma and bad_sigma > 0)
+    jumps = np.empty(size, np.bool_)
+    _jump_flags(right_pair[:size], across[:size], below_pair[:size], down[:size], clean[width : width + size],
+                clean[width + 1 : width + 1 + size], clean[width - 1 : width - 1 + size], clean[2 * width :], clean[:size], jumps)
+    # Across one missing pixel (rare: tested here, not in the loops above).
+    for k in range(size):
+        if valid_flat[k]:
+            continue
+        i, j = k // width, k % width
+        if 0 < j < width - 1 and clean[k - 1 + width] and clean[k + 1 + width]:
+            if _is_jump(distance_flat[k - 1], distance_flat[k + 1], noise[k - 1] + noise[k + 1], depth_jump, 2.0):
+                jumps[k - 1] = True
+                jumps[k + 1] = True
+        if 0 < i < height - 1 and clean[k] and clean[k + 2 * width]:
+            if _is_jump(distance_flat[k - width], distance_flat[k + width], noise[k - width] + noise[k + width], depth_jump, 2.0):
+                jumps[k - width] = True
+                jumps[k + width] = True
+    return clean[width : width + size].reshape((height, width)), jumps.reshape((height, width)), not (check_sigma and bad_sigma > 0)
 
 
 @numba.njit(**_JIT)
@@ -641,6 +632,22 @@ def _pair_jumps(a, b, noise_a, noise_b, valid_a, valid_b, depth_jump, out):  # p
     """``out[k]``: both valid and neighbouring ranges ``a[k]``, ``b[k]`` differ by more than the jump threshold and the noise."""
     for k in range(out.shape[0]):
         out[k] = valid_a[k] & valid_b[k] & _is_jump(a[k], b[k], noise_a[k] + noise_b[k], depth_jump, 1.0)
+
+
+@numba.njit(**_JIT)
+def _clean_flags(right, left, below, above, valid, clean):  # pragma: no cover - compiled
+    """Per pixel: valid and not a spike (a jump against >= 3 of its 4 neighbours, the pair flags given)."""
+    for k in range(clean.shape[0]):
+        count = np.int32(right[k]) + np.int32(left[k]) + np.int32(below[k]) + np.int32(above[k])
+        clean[k] = valid[k] & (count < 3)
+
+
+@numba.njit(**_JIT)
+def _jump_flags(right, left, below, above, clean, clean_right, clean_left, clean_below, clean_above, jumps):  # pragma: no cover - compiled
+    """Per pixel: clean, and a flagged pair with a clean neighbour."""
+    for k in range(jumps.shape[0]):
+        jumps[k] = clean[k] & ((right[k] & clean_right[k]) | (left[k] & clean_left[k])
+                               | (below[k] & clean_below[k]) | (above[k] & clean_above[k]))
 
 
 @numba.njit(**_JIT, inline="always")
@@ -707,7 +714,10 @@ def _inverse_depth_table(points, valid, jumps, pad):  # pragma: no cover - compi
             else:
                 inverse[i, j] = np.nan
     centre = total / count if count else 0.0
-    table = np.zeros((5, height + 1 + 2 * pad, width + 1 + 2 * pad))
+    # Entries above the first row or left of the first column sum nothing; the loops below write all others.
+    table = np.empty((5, height + 1 + 2 * pad, width + 1 + 2 * pad))
+    table[:, : pad + 1, :] = 0.0
+    table[:, :, : pad + 1] = 0.0
     column_offset = width // 2
     row_offset = height // 2
     for i in range(height):

@@ -8,7 +8,7 @@ from rangesurf import simulate
 from rangesurf.denoise import denoise_range
 from rangesurf.frame import get_sensor
 from rangesurf.normals import estimate_normals
-from rangesurf._planefit import planes_from_moments
+from rangesurf._planefit import plane_rms, planes_from_moments
 from rangesurf.segment import Segmentation, grow_regions, region_grow
 from rangesurf.segment.evaluate import evaluate_segmentation, truth_segmentation
 
@@ -353,11 +353,8 @@ def test_seed_order_matches_box_filter_reference():
     normals = estimate_normals(points, projection=SR3000.projection, range_sigma=0.003)
     normals[40:45, 30:90] = np.nan
     min_coherence = np.cos(np.radians(10))
-    distance, valid, state, order = region_grow._growing_grid(points, normals, min_coherence)
-    expected_valid = np.isfinite(points).all(axis=2)
-    assert np.array_equal(valid, expected_valid)
-    assert np.allclose(distance[valid], np.linalg.norm(points[valid].astype(np.float64), axis=1), rtol=1e-6)
-    assert np.isnan(distance[~valid]).all()
+    valid = np.isfinite(points).all(axis=2)
+    state, order = region_grow._growing_grid(valid, normals, min_coherence)
     growable = valid & np.isfinite(normals).all(axis=2)
     framed = state.reshape(SR3000.shape[0] + 2, SR3000.shape[1] + 2)
     assert np.array_equal(framed[1:-1, 1:-1] == 0, growable) and (framed[1:-1, 1:-1] != 0).sum() == (~growable).sum()
@@ -400,3 +397,14 @@ def test_segment_planes_takes_the_callers_normals():
         segment_planes(points, range_sigma=sigma, normals=normals, decimate=2)
     with pytest.raises(ValueError, match="must match"):
         segment_planes(points, range_sigma=sigma, normals=normals[1:])
+
+
+def test_plane_rms_matches_point_distances():
+    points, labels = noisy_scene(17)
+    moments = moments_reference(points, labels, 4)[1:]
+    rng = np.random.default_rng(18)
+    planes = rng.normal(size=(3, 4))
+    planes[:, :3] /= np.linalg.norm(planes[:, :3], axis=1, keepdims=True)
+    expected = [np.sqrt(np.mean((points[labels == label].astype(np.float64) @ plane[:3] + plane[3]) ** 2))
+                for label, plane in zip((1, 2, 3), planes)]
+    assert np.allclose(plane_rms(moments, planes), expected, rtol=1e-6)

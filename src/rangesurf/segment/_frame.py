@@ -13,8 +13,8 @@ from numpy.typing import ArrayLike
 from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf.denoise import denoise_range
 from rangesurf.frame import PinholeProjection, RangeFrame
-# One pass for ranges and the Inf check of check_point_grid (shared with the normal estimator).
-from rangesurf.normals import _point_grid, _point_ranges, estimate_normals
+from rangesurf._grid import point_ranges
+from rangesurf.normals import _normals_and_ranges, _point_grid, estimate_normals
 from rangesurf.segment._segmentation import Segmentation
 from rangesurf.segment.nxd import segment_nxd
 from rangesurf.segment.region_grow import _grow, _refine_upsampled
@@ -91,12 +91,14 @@ def segment_planes(
             raise ValueError(f"normals {normals.shape} must match the points grown on, {grown} (decimated by {decimate})")
     if decimate == 1:
         # The normal estimator refuses Inf points and checks the sigma where there is a return, in its
-        # own passes; growing finds the ranges in its first one.
+        # own passes, and hands on the ranges it found for growing.
         sigma = np.ascontiguousarray(np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width)))
         if normals is None:
-            normals = estimate_normals(points, projection=projection, range_sigma=sigma)
-        return _grow(points, normals, sigma)
-    distance, valid, n_infinite = _point_ranges(points)
+            normals, _, distance, valid = _normals_and_ranges(points, projection, range_sigma=sigma)
+        else:
+            distance, valid, _ = point_ranges(points)
+        return _grow(points, normals, sigma, distance, valid)
+    distance, valid, n_infinite = point_ranges(points)
     if n_infinite:
         check_point_grid(points)  # raises, in the shared wording
     sigma = check_range_sigma(
@@ -113,7 +115,8 @@ def segment_planes(
         )
     if normals is None:
         normals = estimate_normals(coarse_points, projection=coarse_projection, range_sigma=coarse_sigma)
-    coarse = _grow(coarse_points, normals, coarse_sigma)
+    coarse = _grow(coarse_points, normals, coarse_sigma, np.ascontiguousarray(distance[::decimate, ::decimate]),
+                   np.ascontiguousarray(valid[::decimate, ::decimate]))
     return _refine_upsampled(points, distance, valid, sigma, coarse, decimate)
 
 

@@ -7,9 +7,9 @@ from dataclasses import dataclass
 import numba
 import numpy as np
 
-from rangesurf._planefit import plane_rms, planes_from_moments
+from rangesurf._planefit import plane_rms, planes_kernel
 
-__all__ = ["Segmentation", "relabel"]
+__all__ = ["Segmentation"]
 
 
 @dataclass(frozen=True)
@@ -61,30 +61,57 @@ class Segmentation:
         ``lookup[k]`` when ``lookup`` is given (a merge: the label image is
         then mapped once, not twice).
         """
-        counts = moments[1:, 0]
-        keep = np.flatnonzero(counts > 0)
-        keep = keep[np.argsort(-counts[keep], kind="stable")]
-        renumber = np.zeros(len(moments), np.int32)
-        renumber[keep + 1] = np.arange(1, len(keep) + 1, dtype=np.int32)
-        planes = np.full((len(keep) + 1, 4), np.nan)
-        residuals = np.full(len(keep) + 1, np.nan)
-        planes[1:], residuals[1:] = planes_from_moments((moments if fit_moments is None else fit_moments)[keep + 1])
-        if fit_moments is not None:
-            # The residual is every point's, about the plane fitted to some of them.
-            residuals[1:] = plane_rms(moments[keep + 1], planes[1:])
-        sizes = np.concatenate([[unlabelled], counts[keep]]).astype(np.int64)
-        labels = relabel(labels, renumber if lookup is None else renumber[lookup])
+        moments = np.ascontiguousarray(moments, dtype=np.float64)
+        fit = moments if fit_moments is None else np.ascontiguousarray(fit_moments, dtype=np.float64)
+        if lookup is None:
+            lookup = np.arange(len(moments), dtype=np.int32)
+        labels, planes, residuals, sizes = _from_moments_kernel(
+            np.ascontiguousarray(labels), moments, fit, fit_moments is not None, np.ascontiguousarray(lookup, dtype=np.int32),
+            unlabelled,
+        )
         return cls(labels=labels, planes=planes, residuals=residuals, sizes=sizes)
 
 
-def relabel(labels: np.ndarray, lookup: np.ndarray) -> np.ndarray:
-    """``lookup[labels]`` as int32, for label images (a compiled loop: NumPy's fancy indexing is several times slower)."""
-    labels = np.ascontiguousarray(labels)
-    return _relabel_kernel(labels.reshape(-1), np.ascontiguousarray(lookup, dtype=np.int32)).reshape(labels.shape)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _from_moments_kernel(labels, moments, fit, refit, lookup, unlabelled):  # pragma: no cover - compiled
+    """`Segmentation.from_moments` in one compiled call (at 176x144 its NumPy steps cost as much as a kernel pass).
+
+    ``refit``: the planes come from ``fit`` and the residuals from ``moments``
+    about them; otherwise both from ``fit`` (which is ``moments``).
+    """
+    counts = moments[1:, 0]
+    keep = np.flatnonzero(counts > 0)
+    # Largest first; a stable sort keeps equal sizes in label order.
+    keep = keep[np.argsort(-counts[keep], kind="mergesort")]
+    kept = keep.size
+    renumber = np.zeros(moments.shape[0], np.int32)
+    fit_rows = np.empty((kept, 10))
+    all_rows = np.empty((kept, 10))
+    sizes = np.empty(kept + 1, np.int64)
+    sizes[0] = unlabelled
+    for r in range(kept):
+        renumber[keep[r] + 1] = r + 1
+        fit_rows[r] = fit[keep[r] + 1]
+        all_rows[r] = moments[keep[r] + 1]
+        sizes[r + 1] = np.int64(counts[keep[r]])
+    planes = np.full((kept + 1, 4), np.nan)
+    residuals = np.full(kept + 1, np.nan)
+    fitted, rms = planes_kernel(fit_rows)
+    if refit:
+        # The residual is every point's, about the plane fitted to some of them.
+        rms = plane_rms(all_rows, fitted)
+    planes[1:] = fitted
+    residuals[1:] = rms
+    # Label k of the image is segment lookup[k], which is renumbered: one mapping of the image.
+    composed = np.empty(lookup.size, np.int32)
+    for k in range(lookup.size):
+        composed[k] = renumber[lookup[k]]
+    return _relabel_kernel(labels.reshape(labels.size), composed).reshape(labels.shape), planes, residuals, sizes
 
 
 @numba.njit(cache=True, nogil=True)
 def _relabel_kernel(labels, lookup):  # pragma: no cover - compiled
+    """``lookup[labels]`` as int32, for flat label images (a compiled loop: NumPy's fancy indexing is several times slower)."""
     relabelled = np.empty(labels.size, np.int32)
     for k in range(labels.size):
         relabelled[k] = lookup[labels[k]]

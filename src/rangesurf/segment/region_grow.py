@@ -47,9 +47,9 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_point_grid, check_range_sigma
-from rangesurf._grid import ranges
-from rangesurf._planefit import add_point, plane_eigen, planes_from_moments
-from rangesurf.segment._segmentation import Segmentation, relabel
+from rangesurf._grid import point_ranges, ranges
+from rangesurf._planefit import add_point, plane_eigen, planes_kernel
+from rangesurf.segment._segmentation import Segmentation, _from_moments_kernel, _relabel_kernel
 
 __all__ = ["grow_regions", "refine_upsampled"]
 
@@ -169,35 +169,48 @@ def grow_regions(
     if isinstance(min_size, bool) or not isinstance(min_size, (int, np.integer)) or min_size < 1:
         raise ValueError(f"min_size must be an integer >= 1, got {min_size!r}")
 
-    distance, valid = ranges(points)
+    distance, valid, _ = point_ranges(points)
     sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
-    return _grow(points, normals, sigma, float(distance_sigmas), float(max_angle), float(depth_jump), int(min_size), merge)
+    return _grow(points, normals, sigma, distance, valid, float(distance_sigmas), float(max_angle), float(depth_jump), int(min_size), merge)
 
 
 def _grow(
     points: np.ndarray,
     normals: np.ndarray,
     sigma: np.ndarray,
+    distance: np.ndarray,
+    valid: np.ndarray,
     distance_sigmas: float = _DISTANCE_SIGMAS,
     max_angle: float = _MAX_ANGLE,
     depth_jump: float = _DEPTH_JUMP,
     min_size: int | None = None,
     merge: bool = True,
 ) -> Segmentation:
-    """`grow_regions` on checked inputs: C-contiguous float32 grids and ``sigma`` (H, W) float64.
+    """`grow_regions` on checked inputs: C-contiguous float32 grids, ``sigma`` (H, W) float64, and the points' ranges and valid mask (`rangesurf._grid.point_ranges`).
 
-    ``sigma`` is read only where a point is valid.
+    ``sigma`` is read only where a point is valid. All the steps run in one
+    compiled call: at 176x144 a dozen separate calls cost as much in
+    dispatch as the steps themselves.
     """
     if min_size is None:
         min_size = default_min_size(*sigma.shape)
-    cos_max_angle = math.cos(math.radians(max_angle))
-    distance, valid, state, order = _growing_grid(points, normals, math.cos(math.radians(max_angle / 2)))
+    labels, planes, residuals, sizes = _grow_steps(
+        points, normals, sigma, distance, valid, distance_sigmas, math.cos(math.radians(max_angle)),
+        math.cos(math.radians(max_angle / 2)), depth_jump, min_size, merge,
+    )
+    return Segmentation(labels=labels, planes=planes, residuals=residuals, sizes=sizes)
+
+
+@numba.njit(**_JIT)
+def _grow_steps(points, normals, sigma, distance, valid, distance_sigmas, cos_max_angle, min_coherence, depth_jump, min_size, merge):  # pragma: no cover - compiled
+    """The steps of `_grow`: seeds, growing, boundaries, absorption, merging, bevels, interior fits; the parts of a `Segmentation`."""
+    state, order = _growing_grid(valid, normals, min_coherence)
     labels, moments = _grow_kernel(
         points, normals, distance, sigma, state, order, distance_sigmas, cos_max_angle, depth_jump, min_size, float(_FIRST_FIT)
     )
-    planes, _ = planes_from_moments(moments)
+    planes, _ = planes_kernel(moments)
     free_rows, free_cols = _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, depth_jump)
-    planes, _ = planes_from_moments(moments)
+    planes, _ = planes_kernel(moments)
     # Planes are fitted to what growing found (the core), not to the outline pixels absorbed below.
     core, core_moments = labels.copy(), moments.copy()
     free_rows, free_cols = _absorb_kernel(
@@ -205,31 +218,35 @@ def _grow(
     )
     # Merging and the bevel test need only per-segment sums: one pass over the labels gives them for the
     # segments as grown, and a merge just adds up the rows of the segments it joins.
-    pairs, shapes = _adjacency(labels, len(moments))
-    lookup = np.arange(len(moments), dtype=np.int32)
+    pairs, shapes = _adjacency(labels, moments.shape[0])
+    lookup = np.arange(moments.shape[0]).astype(np.int32)
     if merge:
         lookup, moments = _merge_coplanar(pairs, moments, cos_max_angle)
         core_moments, shapes = _sum_into(core_moments, lookup), _sum_into(shapes, lookup)
         pairs = _merged_pairs(pairs, lookup)
-    planes, _ = planes_from_moments(moments)
+    planes, _ = planes_kernel(moments)
     bevels = _bevel_kernel(pairs, shapes, planes, _BEVEL_WIDTH, _BEVEL_SLACK)
     if bevels.size:
         # A bevel is dissolved: its pixels leave every segment, its sums go.
-        dissolved = np.zeros(len(lookup), bool)
-        dissolved[bevels] = True
-        lookup[dissolved[lookup]] = 0
-        moments[bevels] = 0
-        core_moments[bevels] = 0
+        dissolved = np.zeros(lookup.size, np.bool_)
+        for bevel in bevels:
+            dissolved[bevel] = True
+            moments[bevel] = 0.0
+            core_moments[bevel] = 0.0
+        for label in range(lookup.size):
+            if dissolved[lookup[label]]:
+                lookup[label] = 0
     fit = _interior_moments(points, core, lookup, core_moments)
     if bevels.size:
         # The bevels' pixels are free again, for their neighbours to absorb.
-        labels, lookup = relabel(labels, lookup), None
-        planes, _ = planes_from_moments(moments)
+        labels = _relabel_kernel(labels.reshape(labels.size), lookup).reshape(labels.shape)
+        lookup = np.arange(moments.shape[0]).astype(np.int32)
+        planes, _ = planes_kernel(moments)
         free_rows, free_cols = _free_pixels(labels, valid)
         free_rows, free_cols = _absorb_kernel(
             points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, _ABSORB_SWEEPS
         )
-    return Segmentation.from_moments(labels, moments, len(free_rows), fit, lookup)
+    return _from_moments_kernel(labels, moments, fit, True, lookup, free_rows.size)
 
 
 def refine_upsampled(
@@ -289,17 +306,26 @@ def _refine_upsampled(
     depth_jump: float = _DEPTH_JUMP,
 ) -> Segmentation:
     """`refine_upsampled` on checked inputs (as for `_grow`)."""
-    planes = np.ascontiguousarray(coarse.planes, dtype=np.float64)
-    labels, moments = _upsampled_labels(points, valid, sigma, coarse.labels, factor, planes, distance_sigmas)
-    free_rows, free_cols = _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, depth_jump)
-    core, core_moments = labels.copy(), moments.copy()
-    planes, _ = planes_from_moments(moments)
-    sweeps = _ABSORB_SWEEPS + factor
-    free_rows, free_cols = _absorb_kernel(
-        points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, sweeps
+    labels, planes, residuals, sizes = _refine_steps(
+        points, distance, valid, sigma, np.ascontiguousarray(coarse.labels, dtype=np.int32),
+        np.ascontiguousarray(coarse.planes, dtype=np.float64), factor, distance_sigmas, depth_jump,
     )
-    identity = np.arange(len(moments), dtype=np.int32)
-    return Segmentation.from_moments(labels, moments, len(free_rows), _interior_moments(points, core, identity, core_moments))
+    return Segmentation(labels=labels, planes=planes, residuals=residuals, sizes=sizes)
+
+
+@numba.njit(**_JIT)
+def _refine_steps(points, distance, valid, sigma, coarse_labels, coarse_planes, factor, distance_sigmas, depth_jump):  # pragma: no cover - compiled
+    """The steps of `_refine_upsampled` in one compiled call; the parts of a `Segmentation`."""
+    labels, moments = _upsampled_labels(points, valid, sigma, coarse_labels, factor, coarse_planes, distance_sigmas)
+    free_rows, free_cols = _refine_boundaries(points, distance, sigma, valid, labels, coarse_planes, moments, depth_jump)
+    core, core_moments = labels.copy(), moments.copy()
+    planes, _ = planes_kernel(moments)
+    free_rows, free_cols = _absorb_kernel(
+        points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, _ABSORB_SWEEPS + factor
+    )
+    identity = np.arange(moments.shape[0]).astype(np.int32)
+    fit = _interior_moments(points, core, identity, core_moments)
+    return _from_moments_kernel(labels, moments, fit, True, identity, free_rows.size)
 
 
 # --------------------------------------------------------------------------
@@ -323,7 +349,8 @@ def _check_inputs(points: Any, normals: Any) -> tuple[np.ndarray, np.ndarray]:
 # --------------------------------------------------------------------------
 
 
-def _merge_coplanar(pairs: np.ndarray, moments: np.ndarray, cos_max_angle: float) -> tuple[np.ndarray, np.ndarray]:
+@numba.njit(**_JIT)
+def _merge_coplanar(pairs, moments, cos_max_angle):  # pragma: no cover - compiled
     """Merge neighbouring segments that one plane fits as well as their own two (union-find, best pairs first).
 
     ``pairs`` are the neighbouring segments (`_adjacency`). Returns the label
@@ -335,13 +362,14 @@ def _merge_coplanar(pairs: np.ndarray, moments: np.ndarray, cos_max_angle: float
     panel set back from its wall, parallel but a few noise sigmas behind,
     does not.
     """
-    if len(pairs) == 0:
-        return np.arange(len(moments), dtype=np.int32), moments
-    planes, rms = planes_from_moments(moments)
+    if pairs.shape[0] == 0:
+        return np.arange(moments.shape[0]).astype(np.int32), moments
+    planes, rms = planes_kernel(moments)
     return _merge_kernel(pairs, moments, planes, rms, cos_max_angle, _MERGE_VARIANCE_GAIN)
 
 
-def _interior_moments(points: np.ndarray, labels: np.ndarray, lookup: np.ndarray, moments: np.ndarray) -> np.ndarray:
+@numba.njit(**_JIT)
+def _interior_moments(points, labels, lookup, moments):  # pragma: no cover - compiled
     """Moments of each segment's interior (2 pixels in from its outline; the image border does not count).
 
     ``labels`` are mapped through ``lookup`` first; ``moments`` are those of
@@ -351,17 +379,21 @@ def _interior_moments(points: np.ndarray, labels: np.ndarray, lookup: np.ndarray
     their points. Outline and outliers are the few pixels: their moments are
     summed and taken off, rather than all the rest summed again.
     """
-    labels, interior, outline = _interior_kernel(points, labels, lookup, len(moments))
+    labels, interior, outline = _interior_kernel(points, labels, lookup, moments.shape[0])
     fit = moments - outline
     # Segments with too small an interior are fitted whole.
-    whole = fit[:, 0] < np.maximum(_MIN_INTERIOR, _MIN_INTERIOR_FRACTION * moments[:, 0])
-    fit[whole] = moments[whole]
+    whole = np.empty(moments.shape[0], np.bool_)
+    for label in range(moments.shape[0]):
+        whole[label] = fit[label, 0] < max(float(_MIN_INTERIOR), _MIN_INTERIOR_FRACTION * moments[label, 0])
+        if whole[label]:
+            fit[label] = moments[label]
     # One trimming pass: points more than _TRIM_RMS residual RMS off the plane (a rounded crease,
     # a stray pixel) leave the fit.
-    planes, rms = planes_from_moments(fit)
+    planes, rms = planes_kernel(fit)
     refit = fit - _outlier_moments(points, labels, interior, whole, planes, rms)
-    keep = refit[:, 0] >= np.maximum(3, 0.5 * fit[:, 0])
-    fit[keep] = refit[keep]
+    for label in range(moments.shape[0]):
+        if refit[label, 0] >= max(3.0, 0.5 * fit[label, 0]):
+            fit[label] = refit[label]
     return fit
 
 
@@ -493,9 +525,11 @@ def _adjacency(labels, count):  # pragma: no cover - compiled
         # Inside a segment (the common case) all four pixels ahead hold its label; which of the row's pixels
         # do is found first, in a loop the compiler vectorises.
         if i + 2 < height:
+            # Rows as views, indexed by the column alone (a run-time row offset would keep the loop scalar).
+            here, below, further = labels[i], labels[i + 1], labels[i + 2]
             for j in range(width - 2):
-                a = labels[i, j]
-                alike[j] = (labels[i, j + 1] == a) & (labels[i, j + 2] == a) & (labels[i + 1, j] == a) & (labels[i + 2, j] == a)
+                a = here[j]
+                alike[j] = (here[j + 1] == a) & (here[j + 2] == a) & (below[j] == a) & (further[j] == a)
         else:
             alike[:] = False
         for j in range(width):
@@ -599,7 +633,7 @@ def _interior_kernel(points, labels, lookup, n_labels):  # pragma: no cover - co
     mapped = np.empty((height, width), np.int32)
     for i in range(height):
         for j in range(width):
-            mapped[i, j] = lookup[labels[i, j]]
+            mapped[i, j] = lookup[np.uint32(labels[i, j])]  # unsigned: no wrap-around test (labels are >= 0)
     # Differing pairs across columns j, j + 1 and across rows i, i + 1, at column j + margin (the margin
     # columns each side stay False).
     across = np.zeros((height, width + 2 * margin), np.bool_)
@@ -659,7 +693,10 @@ def _outlier_moments(points, labels, interior, whole, planes, rms):  # pragma: n
             z = np.float64(points[i, j, 2])
             offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
             if not offset <= limits[label]:
-                current, run = _run_into(moments, current, run, label, x, y, z)
+                if label != current:
+                    _run_flush(moments, current, run)
+                    current, run = label, _EMPTY_RUN
+                run = _run_add(run, x, y, z)
     _run_flush(moments, current, run)
     return moments
 
@@ -670,13 +707,11 @@ def _outlier_moments(points, labels, interior, whole, planes, rms):  # pragma: n
 
 
 @numba.njit(**_JIT)
-def _growing_grid(points, normals, min_coherence):  # pragma: no cover - compiled
-    """Ranges, growing state and seed order of a frame.
+def _growing_grid(valid, normals, min_coherence):  # pragma: no cover - compiled
+    """Growing state and seed order of a frame whose valid points are ``valid``.
 
     Returns
 
-    * distance (H, W) float32, the range of every point (NaN where invalid),
-      and the valid mask (H, W), as `rangesurf.normals._point_ranges`;
     * state ((H + 2) * (W + 2),) int32, the grid framed by one pixel: 0
       where a region may grow (a valid pixel with a known normal), -1
       elsewhere and on the frame, so that growing needs no bounds checks;
@@ -692,25 +727,11 @@ def _growing_grid(points, normals, min_coherence):  # pragma: no cover - compile
     counting sort on coherence (65536 bins; raster order within one). Each
     step is a loop of its own, simple enough for the compiler to vectorise.
     """
-    height, width = points.shape[:2]
+    height, width = valid.shape
     stride = width + 2
     size = height * width
-    flat_points = points.reshape(size * 3)
     flat_normals = normals.reshape(size * 3)
-    distance = np.empty(size, np.float32)
-    valid = np.empty(size, np.bool_)
-    squared = np.empty(width)
-    for i in range(height):
-        base = i * width
-        for j in range(width):
-            x = float(flat_points[3 * (base + j)])
-            y = float(flat_points[3 * (base + j) + 1])
-            z = float(flat_points[3 * (base + j) + 2])
-            squared[j] = x * x + y * y + z * z
-        for j in range(width):
-            is_valid = (squared[j] > 0.0) & (squared[j] < math.inf)
-            valid[base + j] = is_valid
-            distance[base + j] = math.sqrt(squared[j]) if is_valid else np.nan
+    flat_valid = valid.reshape(size)
     state = np.full((height + 2) * stride, -1, np.int32)
     bins = 65536
     # Only the buckets of coherences >= min_coherence are ever filled: the histogram stops there.
@@ -725,16 +746,22 @@ def _growing_grid(points, normals, min_coherence):  # pragma: no cover - compile
     coherence = np.empty(width, np.float32)
     for entering in range(height + 2):
         if entering < height:
+            # Views indexed by the column alone: an index with a run-time offset keeps the loop from vectorising.
             base = entering * width
-            framed = (entering + 1) * stride + 1
+            normals_row = flat_normals[3 * base : 3 * (base + width)]
+            valid_row = flat_valid[base : base + width]
+            state_row = state[(entering + 1) * stride + 1 : (entering + 1) * stride + 1 + width]
+            row_x, row_y, row_z, row_n = row[0, 2:], row[1, 2:], row[2, 2:], row[3, 2:]
             for j in range(width):
-                k = 3 * (base + j)
-                grows = valid[base + j] & (flat_normals[k] == flat_normals[k]) & (flat_normals[k + 2] == flat_normals[k + 2])
-                state[framed + j] = 0 if grows else -1
-                row[0, j + 2] = flat_normals[k] if grows else 0.0
-                row[1, j + 2] = flat_normals[k + 1] if grows else 0.0
-                row[2, j + 2] = flat_normals[k + 2] if grows else 0.0
-                row[3, j + 2] = 1.0 if grows else 0.0
+                x = normals_row[3 * j]
+                y = normals_row[3 * j + 1]
+                z = normals_row[3 * j + 2]
+                grows = valid_row[j] & (x == x) & (z == z)
+                state_row[j] = 0 if grows else -1
+                row_x[j] = x if grows else 0.0
+                row_y[j] = y if grows else 0.0
+                row_z[j] = z if grows else 0.0
+                row_n[j] = 1.0 if grows else 0.0
             sums = row_sums[entering % 5]
             for channel in range(4):
                 for j in range(width):
@@ -751,11 +778,13 @@ def _growing_grid(points, normals, min_coherence):  # pragma: no cover - compile
             total1 = np.float32(window[1, j])
             total2 = np.float32(window[2, j])
             coherence[j] = math.sqrt(total0**2 + total1**2 + total2**2) / np.float32(window[3, j])
-        framed = (i + 1) * stride + 1
+        state_row = state[(i + 1) * stride + 1 : (i + 1) * stride + 1 + width]
+        count = window[3]
+        keys_row = keys[i]
         for j in range(width):
-            seeds = (state[framed + j] == 0) & (window[3, j] > 0) & (coherence[j] >= min_coherence)
+            seeds = (state_row[j] == 0) & (count[j] > 0) & (coherence[j] >= min_coherence)
             smoothness = coherence[j] if seeds else 1.0
-            keys[i, j] = min(int((1.0 - min(smoothness, 1.0)) * (bins - 1)), used - 1) if seeds else -1
+            keys_row[j] = min(int((1.0 - min(smoothness, 1.0)) * (bins - 1)), used - 1) if seeds else -1
         if i >= 2:
             leaving = row_sums[(i - 2) % 5]
             for channel in range(4):
@@ -775,7 +804,7 @@ def _growing_grid(points, normals, min_coherence):  # pragma: no cover - compile
             if key >= 0:
                 order[histogram[key]] = (i + 1) * stride + j + 1
                 histogram[key] += 1
-    return distance.reshape((height, width)), valid.reshape((height, width)), state, order
+    return state, order
 
 
 @numba.njit(**_JIT)
@@ -790,16 +819,18 @@ def _grow_kernel(points, normals, distance, sigma, state, order, distance_sigmas
     stride = width + 2
     # A pixel is p in the framed state and d in the (unframed, flattened) data; its neighbours right, down,
     # left and up are p + steps[k] and d + data_steps[k]. The frame stops growth at the border.
-    steps = (1, stride, -1, -stride)
-    data_steps = (1, width, -1, -width)
+    # Arrays, not tuples: indexed by a loop variable, a tuple compiles to slower code (a sixth of this kernel).
+    steps = np.array([1, stride, -1, -stride], np.int64)
+    data_steps = np.array([1, width, -1, -width], np.int64)
     point = points.reshape((height * width, 3))
     normal_of = normals.reshape((height * width, 3))
     range_of = distance.reshape(height * width)
     noise = sigma.reshape(height * width)
     # Pixels of dissolved regions: free to join, never a seed again.
     spent = np.zeros(state.size, np.bool_)
-    queue = np.empty(height * width, np.int32)
-    queue_data = np.empty(height * width, np.int32)
+    # Unsigned, as the neighbours' indices below.
+    queue = np.empty(height * width, np.uint32)
+    queue_data = np.empty(height * width, np.uint32)
     moments = np.zeros((64, 10))
     plane = np.empty(4)
     normal = np.empty(3)
@@ -832,10 +863,11 @@ def _grow_kernel(points, normals, distance, sigma, state, order, distance_sigmas
             head += 1
             range_c = range_of[dc]
             for direction in range(4):
-                q = c + steps[direction]
+                # Unsigned: an index that may be negative gets a wrap-around test at every access.
+                q = np.uint64(c + steps[direction])
                 if state[q] != 0:
                     continue
-                dq = dc + data_steps[direction]
+                dq = np.uint64(dc + data_steps[direction])
                 # Join test: no depth jump, on the plane within the noise, normal agrees (plane in registers).
                 range_q = range_of[dq]
                 if abs(range_q - range_c) > depth_jump * min(range_q, range_c):
@@ -902,11 +934,13 @@ def _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, 
     inside = np.zeros(width, np.bool_)
     for i in range(height):
         if 0 < i < height - 1:
+            # Rows as views, indexed by the column alone (a run-time row offset would keep the loop scalar).
+            above, here, below = labels[i - 1], labels[i], labels[i + 1]
             for j in range(1, width - 1):
-                own = labels[i, j]
-                inside[j] = ((labels[i - 1, j - 1] == own) & (labels[i - 1, j] == own) & (labels[i - 1, j + 1] == own)
-                             & (labels[i, j - 1] == own) & (labels[i, j + 1] == own)
-                             & (labels[i + 1, j - 1] == own) & (labels[i + 1, j] == own) & (labels[i + 1, j + 1] == own))
+                own = here[j]
+                inside[j] = ((above[j - 1] == own) & (above[j] == own) & (above[j + 1] == own)
+                             & (here[j - 1] == own) & (here[j + 1] == own)
+                             & (below[j - 1] == own) & (below[j] == own) & (below[j + 1] == own))
         else:
             inside[:] = False
         for j in range(width):
@@ -995,11 +1029,14 @@ def _absorb_kernel(points, distance, sigma, labels, planes, moments, free_rows, 
         for k in range(n_free):
             i = free_rows[k]
             j = free_cols[k]
-            x = points[i, j, 0]
-            y = points[i, j, 1]
-            z = points[i, j, 2]
+            # Unsigned copies for the pixel's own entries: an index that may be negative gets a wrap-around test.
+            row, column = np.uint64(i), np.uint64(j)
+            x = points[row, column, 0]
+            y = points[row, column, 1]
+            z = points[row, column, 2]
+            here = distance[row, column]
             best = 0
-            best_gap = distance_sigmas * sigma[i, j]
+            best_gap = distance_sigmas * sigma[row, column]
             for direction in range(4):
                 qi = i + _FOUR[direction, 0]
                 qj = j + _FOUR[direction, 1]
@@ -1008,7 +1045,7 @@ def _absorb_kernel(points, distance, sigma, labels, planes, moments, free_rows, 
                 other = labels[qi, qj]
                 if other <= 0:
                     continue
-                if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
+                if abs(distance[qi, qj] - here) > depth_jump * min(distance[qi, qj], here):
                     continue
                 gap = abs(planes[other, 0] * x + planes[other, 1] * y + planes[other, 2] * z + planes[other, 3])
                 if gap <= best_gap:
@@ -1084,6 +1121,9 @@ def _run_flush(moments, label, run):  # pragma: no cover - compiled
             moments[label, k] += run[k]
 
 
+# A run starts empty. Kernels add a point to the run of its label inline, flushing the previous label's
+# run first (a helper returning the label and the run together would pass the tuple through memory,
+# which costs four times as much).
 _EMPTY_RUN = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0)
 
 
@@ -1116,19 +1156,12 @@ def _upsampled_labels(points, valid, sigma, coarse_labels, factor, planes, dista
             if offset > distance_sigmas * sigma[i, j]:
                 continue
             labels[i, j] = label
-            current, run = _run_into(moments, current, run, label, x, y, z)
+            if label != current:
+                _run_flush(moments, current, run)
+                current, run = label, _EMPTY_RUN
+            run = _run_add(run, x, y, z)
     _run_flush(moments, current, run)
     return labels, moments
-
-
-@numba.njit(**_JIT)
-def _run_into(moments, current, run, label, x, y, z):  # pragma: no cover - compiled
-    """Add a point to the running sums of ``label``, flushing the previous label's run into ``moments`` first."""
-    if label != current:
-        _run_flush(moments, current, run)
-        current = label
-        run = _EMPTY_RUN
-    return current, _run_add(run, x, y, z)
 
 
 @numba.njit(**_JIT)
@@ -1143,7 +1176,10 @@ def _masked_moments(points, labels, mask, n_labels):  # pragma: no cover - compi
             label = labels[i, j]
             if label > 0 and mask[i, j]:
                 x, y, z = np.float64(points[i, j, 0]), np.float64(points[i, j, 1]), np.float64(points[i, j, 2])
-                current, run = _run_into(moments, current, run, label, x, y, z)
+                if label != current:
+                    _run_flush(moments, current, run)
+                    current, run = label, _EMPTY_RUN
+                run = _run_add(run, x, y, z)
     _run_flush(moments, current, run)
     return moments
 
