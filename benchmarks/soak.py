@@ -68,7 +68,7 @@ def later_growth(table: np.ndarray, start: int) -> list[str]:
         return []
     first, last = np.median(rows[:5], axis=0), np.median(rows[-5:], axis=0)
     growth = [100 * (last[column] / first[column] - 1) for column in (1, 3, 4)]
-    return ["", f"From frame {start:,} to {int(last[0]):,}: resident memory {growth[0]:+.2f} %, model vertices "
+    return ["", f"From frame {start:,} to {int(rows[-1, 0]):,} (the same five-sample medians): resident memory {growth[0]:+.2f} %, model vertices "
                 f"{growth[1]:+.2f} %, surface seen {growth[2]:+.2f} %."]
 
 
