@@ -124,7 +124,9 @@ class RunSettings:
 
     ``budget_ms`` None: the sensor's frame period. ``remesh_every``: frames
     between re-meshing the changed patches with their level-of-detail order
-    (deferrable work; always done at the end). ``checkpoint_every``: frames
+    (deferrable work; always done at the end); None: every 25 frames while a
+    viewer shows the model (`Pipeline.live_meshes`), otherwise only at the
+    end, since nothing looks at the meshes before. ``checkpoint_every``: frames
     between atomic checkpoints of the model (0: none). ``on_bad_frame``:
     "skip" (report it and go on) or "stop" (save what was merged and stop).
     ``release_memory_every``: frames between handing the memory that
@@ -134,7 +136,7 @@ class RunSettings:
     """
 
     budget_ms: float | None = None
-    remesh_every: int = 25
+    remesh_every: int | None = None
     checkpoint_every: int = 25
     on_bad_frame: str = "skip"
     release_memory_every: int = 100
@@ -171,7 +173,7 @@ class PipelineConfig:
         for name in ("register.keyframe_distance", "register.keyframe_angle", "register.align_to_model_every",
                      "merge.carve_every", "run.remesh_every", "run.checkpoint_every", "run.release_memory_every",
                      "merge.bridge"):
-            if self._get(name) < 0:
+            if self._get(name) is not None and self._get(name) < 0:
                 raise ConfigError(f"config: {name} must be >= 0, got {self._get(name)}")
         if self.merge.min_overlap < 1:
             raise ConfigError(f"config: merge.min_overlap must be >= 1, got {self.merge.min_overlap}")

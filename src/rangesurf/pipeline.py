@@ -6,8 +6,9 @@
 configured, the pixels of no planar segment -- or all -- into a TSDF volume),
 with the
 re-meshing of changed patches and their level-of-detail order as deferrable
-work: it runs every ``run.remesh_every`` frames when the frame's time budget
-allows, is postponed (and counted) when it does not, and always runs in
+work: it runs every ``run.remesh_every`` frames (by default only while a
+viewer shows the model live) when the frame's time budget allows, is
+postponed (and counted) when it does not, and always runs in
 `Pipeline.finish`. Every frame's per-stage timings and whether it overran
 its budget are reported; no frame is dropped silently.
 
@@ -54,6 +55,8 @@ STAGES = ("denoise", "segment", "surfaces", "register", "merge", "volume", "defe
 # more points than they need).
 _DENSE_FRAME = 200_000
 _CHECKPOINT_VERSION = 1
+# Frames between re-meshing the changed patches while a viewer shows them (run.remesh_every unset).
+_LIVE_REMESH_EVERY = 25
 # Time (ms) a frame must have left for handing freed memory back (malloc_trim: about 1-5 ms at 300 MB).
 _RELEASE_MS = 5.0
 
@@ -116,6 +119,10 @@ class Pipeline:
     frames, late, deferred_runs, postponed : int
         Frames processed, frames over budget, patches re-meshed as deferred
         work, frames that left re-meshing for later.
+    live_meshes : bool
+        Whether something shows the model's meshes while the run goes on (a
+        viewer); with ``run.remesh_every`` unset, changed patches are then
+        re-meshed every 25 frames, otherwise only in `finish`.
     """
 
     def __init__(self, config: PipelineConfig | None = None) -> None:
@@ -137,6 +144,7 @@ class Pipeline:
         self.deferred_runs = 0
         self.postponed = 0
         self.checkpoint_extra: dict[str, np.ndarray] = {}
+        self.live_meshes = False
         self._remesh_queue: list = []
         self._release_due = False
         # Measured cost of re-meshing (mesh and LOD order), per cell; a cautious start.
@@ -260,6 +268,8 @@ class Pipeline:
 
         budget = self._budget_ms(frame)
         every = self.config.run.remesh_every
+        if every is None:
+            every = _LIVE_REMESH_EVERY if self.live_meshes else 0
         if every and (self.frames + 1) % every == 0:
             # Due: the patches changed since they were last meshed join the queue.
             queued = {id(patch) for patch in self._remesh_queue}

@@ -210,6 +210,8 @@ def run(
             checkpoint.unlink()
         pipeline = Pipeline(config)
     config = pipeline.config
+    # Meshes made while the run goes on are for a viewer to show; without one they wait for the end.
+    pipeline.live_meshes = not isinstance(viewer, NullViewer)
     config.save(out / "config.toml")
     # Input positions consumed before the checkpoint (frames merged plus unreadable ones skipped).
     already = int(pipeline.checkpoint_extra["positions"]) if "positions" in pipeline.checkpoint_extra else pipeline.frames
