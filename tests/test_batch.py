@@ -23,9 +23,16 @@ def distributed():
 
 @pytest.fixture(scope="module")
 def sequential(tmp_path_factory):
-    """The reference: each scene through `runner.run` in this process (also fills Numba's on-disk cache)."""
+    """The reference: each scene through `runner.run` in this process (also fills Numba's on-disk cache).
+
+    With BLAS on one thread, as `rangesurf run` and the batch's workers have it: a multi-threaded matrix
+    product can round differently in the last bit.
+    """
+    from threadpoolctl import threadpool_limits
+
     root = tmp_path_factory.mktemp("sequential")
-    return {spec: run(spec, root / spec[4:], frames=FRAMES, sensor="sr3000", progress=False).out for spec in SCENES}
+    with threadpool_limits(limits=1):
+        return {spec: run(spec, root / spec[4:], frames=FRAMES, sensor="sr3000", progress=False).out for spec in SCENES}
 
 
 @pytest.fixture(scope="module")

@@ -13,7 +13,7 @@ Examples
 >>> PipelineConfig.from_dict({"merge": {"cell_sise": 0.02}})
 Traceback (most recent call last):
 ...
-rangesurf.config.ConfigError: config: unknown key 'merge.cell_sise'; the merge section has: bridge, cell_size, max_normal_angle, max_plane_distance, min_overlap, nonplanar, stride, volume, voxel_size
+rangesurf.config.ConfigError: config: unknown key 'merge.cell_sise'; the merge section has: bridge, carve_every, cell_size, max_normal_angle, max_plane_distance, min_overlap, nonplanar, stride, volume, voxel_size
 """
 
 from __future__ import annotations

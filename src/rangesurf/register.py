@@ -76,11 +76,9 @@ _INNOVATION_GATE = 20.0
 # Variance of a constant-velocity motion prior, relative to the odometry's.
 _CONSTANT_VELOCITY_SCALE = 9.0
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
-# The per-point kernel may fuse multiply-adds and divide by a reciprocal: a quarter faster, the same to
-# rounding. (No "nnan"/"ninf": its NaN tests must stand.)
-_JIT_ARITHMETIC = dict(_JIT, fastmath={"contract", "arcp"})
-# Sums may also be reordered, so that they run in SIMD lanes (the same to rounding).
-_JIT_SUMS = dict(_JIT, fastmath={"contract", "arcp", "reassoc", "nsz"})
+# No fastmath: a kernel compiled in this process and the same kernel loaded from Numba's on-disk cache
+# (a Dask worker, a resumed run) then give the same bits; with fused multiply-adds and reordered sums
+# they did not (poses a few ulps apart, seen as trajectory metrics differing in the 12th digit).
 # Inlier columns the point-to-plane kernel buffers before summing them (8 x 512 float64: 32 kB).
 _CHUNK = 512
 
@@ -1027,7 +1025,7 @@ def _covariance(information: np.ndarray, rmse: float) -> tuple[np.ndarray, np.nd
 # --------------------------------------------------------------------------
 
 
-@numba.njit(**_JIT_ARITHMETIC)
+@numba.njit(**_JIT)
 def _projective_pass(source, transform, grid, normals, intrinsics, max_distance, scale, residuals, rows):  # pragma: no cover - compiled
     """Pair, then accumulate J^T W J and J^T W r of the Tukey-weighted point-to-plane residuals (J = [p x n, n]).
 
@@ -1098,7 +1096,7 @@ def _projective_pass(source, transform, grid, normals, intrinsics, max_distance,
     return information, sums[:, 6].copy(), count, inliers, squares
 
 
-@numba.njit(**_JIT_SUMS)
+@numba.njit(**_JIT)
 def _accumulate(rows, filled, sums):  # pragma: no cover - compiled
     """Add sum_k w_k J_ka J_kb (b < 6) and sum_k w_k J_ka r_k (b = 6) of the first ``filled`` columns to ``sums``, a <= b."""
     weights = rows[7]
