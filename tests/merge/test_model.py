@@ -260,6 +260,52 @@ def test_checkpoint_resume_equals_the_uninterrupted_run(tmp_path):
     assert [p.name for p in tmp_path.iterdir()] == ["model.npz"]  # nothing half-written left behind
 
 
+def test_per_frame_records_are_compact_and_exact(tmp_path):
+    """A long run keeps one record per frame: poses without their constant row, a patch's frames as runs."""
+    model = GlobalModel(cell_size=0.02)
+    shown = [0, 1, 2, 5, 6, 9]
+    poses = []
+    for frame in range(10):
+        pose = np.eye(4)
+        pose[:3, :3] = Rotation.from_rotvec([0.0, 0.0, 1e-3 * frame]).as_matrix()
+        pose[:3, 3] = [np.pi * 1e-3 * frame, 0.0, 0.0]
+        poses.append(pose)
+        model.add_frame([wall()] if frame in shown else [], pose)
+    (patch,) = model.patches
+    assert patch.frame_runs.tolist() == [[0, 2], [5, 6], [9, 9]]
+    assert patch.frames.tolist() == shown
+    assert np.array_equal(model.poses, np.array(poses))  # bit for bit
+    assert model.history[3].created == 0 and model.history[0].created == 1
+    model.save(tmp_path / "model.npz")
+    loaded = GlobalModel.load(tmp_path / "model.npz")
+    assert loaded.patches[0].frame_runs.tolist() == [[0, 2], [5, 6], [9, 9]]
+    assert np.array_equal(loaded.poses, model.poses) and loaded.history == model.history
+    # A checkpoint of format 2 listed every frame; it still loads, as runs.
+    arrays = dict(np.load(tmp_path / "model.npz"))
+    arrays.update(format_version=np.array(2), patch_frames=np.array(shown, np.int64),
+                  patch_frame_counts=np.array([0, len(shown)], np.int64), history=arrays["history"].astype(np.int64))
+    for name in ("patch_frame_runs", "patch_frame_run_counts"):
+        del arrays[name]
+    np.savez(tmp_path / "old.npz", **arrays)
+    old = GlobalModel.load(tmp_path / "old.npz")
+    assert old.patches[0].frame_runs.tolist() == [[0, 2], [5, 6], [9, 9]] and old.history == model.history
+
+
+def test_patch_storage_grows_by_quarters():
+    """A large patch that outgrows its storage takes a quarter more room, not double."""
+    model = GlobalModel(cell_size=0.02)
+    model.add_frame([wall(size=(100, 100))], np.eye(4))
+    (patch,) = model.patches
+    before = len(patch._coords)
+    assert patch.n_cells == 10_000 and before < 1.25 * 10_000 + 64
+    model.add_frame([wall(size=(100, 130))], np.eye(4))
+    assert patch.n_cells == 13_000
+    assert 13_000 <= len(patch._coords) <= 1.25**2 * before  # grown by quarters, at most twice
+    assert len(patch._table_slots) >= 2 * len(patch._coords)  # the hash table stays at most half full
+    error, _ = heights(model)
+    assert np.abs(error).max() < 1e-9  # every cell still found where it was
+
+
 def test_bad_inputs(tmp_path):
     model = GlobalModel()
     with pytest.raises(ValueError, match="T_world_sensor"):

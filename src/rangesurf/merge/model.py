@@ -31,7 +31,7 @@ from rangesurf.frame import PinholeProjection, check_rigid_transform
 from rangesurf.io._common import FormatError, atomic_path
 from rangesurf.io.npz import load_arrays
 from rangesurf.lod import progressive_order
-from rangesurf.merge.planar import CELL_FIELDS, Observations, PlanarPatch, variance_along
+from rangesurf.merge.planar import CELL_FIELDS, Observations, PlanarPatch, runs_of, variance_along
 from rangesurf.mesh import Surface
 from rangesurf.register import _exp
 
@@ -39,7 +39,9 @@ __all__ = ["GlobalModel", "MergeStep", "NONPLANAR_MODES"]
 
 NONPLANAR_MODES = ("keep", "drop")
 # 2: per-frame records as arrays (the history no longer JSON), cells' free-space misses.
-_FORMAT_VERSION = 2
+# 3: each patch's frames as runs of consecutive frames (version 2's frame lists are still read).
+_FORMAT_VERSION = 3
+_READABLE_VERSIONS = (2, 3)
 _UNCONSTRAINED_VARIANCE = 1e4
 # Model alignment: surfaces smaller than this are not used; points per surface; how many independent points
 # one plane's points count as; the largest squared Mahalanobis distance of a correction (chi-square, 6
@@ -185,9 +187,11 @@ class GlobalModel:
         self.patches: list[PlanarPatch] = []
         self.others: list[Surface] = []
         # Per-frame records as arrays (a list of objects would grow the memory of a long run).
-        self._poses = GrowingArray((4, 4))
+        # Per-frame records, as compact as they can be exact (a long run keeps one of each per frame):
+        # a pose's last row is always 0 0 0 1, and a frame's merge counts fit 32 bits.
+        self._poses = GrowingArray((3, 4))
         self._timestamps = GrowingArray()
-        self._history = GrowingArray((len(fields(MergeStep)),), np.int64)
+        self._history = GrowingArray((len(fields(MergeStep)),), np.int32)
         self.cells_carved = 0
         # The patches' normals as one array, for the first test against every patch (None: to rebuild,
         # after the list of patches changed).
@@ -205,8 +209,11 @@ class GlobalModel:
 
     @property
     def poses(self) -> np.ndarray:
-        """``T_world_sensor`` of the merged frames, (N, 4, 4)."""
-        return self._poses.values
+        """``T_world_sensor`` of the merged frames, (N, 4, 4) (a new array)."""
+        poses = np.zeros((self.n_frames, 4, 4))
+        poses[:, :3] = self._poses.values
+        poses[:, 3, 3] = 1.0
+        return poses
 
     @property
     def timestamps(self) -> np.ndarray:
@@ -225,7 +232,7 @@ class GlobalModel:
 
     def trajectory(self) -> tuple[np.ndarray, np.ndarray]:
         """Timestamps (N,) and ``T_world_sensor`` poses (N, 4, 4) of the merged frames."""
-        return self.timestamps.copy(), self.poses.copy()
+        return self.timestamps.copy(), self.poses
 
     # ------------------------------------------------------------------
     # Merging.
@@ -292,7 +299,7 @@ class GlobalModel:
             plane = np.r_[normal, surface.plane[3] - normal @ translation] / scale
             observations = _observations(surface, points, plane[:3], pose_covariance)
             self._merge(plane, observations, frame, counts)
-        self._poses.append(pose)
+        self._poses.append(pose[:3])
         self._timestamps.append(float(frame if timestamp is None else timestamp))
         step = MergeStep(frame=frame, **counts)
         self._history.append(astuple(step))
@@ -634,7 +641,7 @@ class GlobalModel:
             "format_version": np.array(_FORMAT_VERSION),
             "settings": np.array(json.dumps(settings)),
             "history": self._history.values.copy(),
-            "poses": self.poses.copy(),
+            "poses": self.poses,
             "timestamps": self.timestamps.copy(),
             "cells_carved": np.array(self.cells_carved),
             "patch_origins": np.asarray([patch.origin for patch in self.patches], np.float64).reshape(-1, 3),
@@ -642,10 +649,11 @@ class GlobalModel:
             "patch_cell_sizes": np.asarray([patch.cell_size for patch in self.patches], np.float64),
             "patch_moments": np.asarray([patch.moments for patch in self.patches], np.float64).reshape(-1, 9),
             "patch_cells": np.cumsum([0] + [patch.n_cells for patch in self.patches]).astype(np.int64),
-            "patch_frame_counts": np.cumsum([0] + [len(patch.frames) for patch in self.patches]).astype(np.int64),
+            "patch_frame_run_counts": np.cumsum([0] + [len(patch.frame_runs) for patch in self.patches]).astype(np.int64),
             "cell_coordinates": np.concatenate([patch.coordinates for patch in self.patches]).astype(np.int32)
             if self.patches else np.zeros((0, 2), np.int32),
-            "patch_frames": _concatenate([patch.frames for patch in self.patches], np.int64),
+            "patch_frame_runs": np.concatenate([patch.frame_runs for patch in self.patches]).astype(np.int64)
+            if self.patches else np.zeros((0, 2), np.int64),
             "n_others": np.array(len(self.others)),
         }
         for name in CELL_FIELDS:
@@ -669,8 +677,9 @@ class GlobalModel:
             return arrays[prefix + name]
 
         version = int(field("format_version"))
-        if version != _FORMAT_VERSION:
-            raise FormatError(source, f"model format version {version}, this rangesurf reads {_FORMAT_VERSION}",
+        if version not in _READABLE_VERSIONS:
+            raise FormatError(source, f"model format version {version}, this rangesurf reads "
+                              f"{' and '.join(map(str, _READABLE_VERSIONS))}",
                               where=f"field {prefix + 'format_version'!r}")
         model = cls(**json.loads(str(field("settings"))))
         poses, timestamps, history = field("poses"), field("timestamps"), field("history")
@@ -681,13 +690,22 @@ class GlobalModel:
         if not (len(timestamps) == len(poses) == len(history)):
             raise FormatError(source, f"{len(poses)} poses, {len(timestamps)} timestamps and "
                               f"{len(history)} history entries disagree", where=f"field {prefix + 'poses'!r}")
-        model._poses.extend(poses)
+        model._poses.extend(poses[:, :3])
         model._timestamps.extend(timestamps)
         model._history.extend(history)
         model.cells_carved = int(field("cells_carved"))
         misses = field("cells_misses")
-        cells, frame_counts = field("patch_cells"), field("patch_frame_counts")
-        coordinates, frames = field("cell_coordinates"), field("patch_frames")
+        cells, coordinates = field("patch_cells"), field("cell_coordinates")
+        if version == 2:
+            lists, list_counts = field("patch_frames"), field("patch_frame_counts")
+            runs = [runs_of(lists[int(start) : int(end)]) for start, end in zip(list_counts[:-1], list_counts[1:])]
+            run_counts = np.cumsum([0] + [len(patch_runs) for patch_runs in runs])
+            frame_runs = np.concatenate(runs) if runs else np.zeros((0, 2), np.int64)
+        else:
+            frame_runs, run_counts = field("patch_frame_runs"), field("patch_frame_run_counts")
+            if frame_runs.ndim != 2 or frame_runs.shape[1] != 2:
+                raise FormatError(source, f"patch frame runs have shape {frame_runs.shape}, expected (R, 2)",
+                                  where=f"field {prefix + 'patch_frame_runs'!r}")
         sums = {name: field(f"cells_{name}") for name in CELL_FIELDS}
         patch_fields = zip(field("patch_origins"), field("patch_axes"), field("patch_cell_sizes"), field("patch_moments"))
         for index, (origin, axes, cell_size, moments) in enumerate(patch_fields):
@@ -695,7 +713,7 @@ class GlobalModel:
             model.patches.append(PlanarPatch(
                 origin=origin, axes=axes, cell_size=float(cell_size), coordinates=coordinates[cell_slice], moments=moments,
                 sums={name: values[cell_slice].copy() for name, values in sums.items()}, misses=misses[cell_slice],
-                frames=frames[int(frame_counts[index]) : int(frame_counts[index + 1])],
+                frame_runs=frame_runs[int(run_counts[index]) : int(run_counts[index + 1])],
             ))
         for index in range(int(field("n_others"))):
             uncertainty = {level: field(f"other{index}_uncertainty_{level}") for level in ("UL1", "UL2", "UL3", "UL4")

@@ -38,12 +38,13 @@ from dataclasses import dataclass, field
 import cv2
 import numba
 import numpy as np
+from numpy.typing import ArrayLike
 
 from rangesurf._growing import GrowingArray
 from rangesurf._hashgrid import empty_table, insert, lookup, rehash
 from rangesurf.mesh import Surface, _grid_faces
 
-__all__ = ["PlanarPatch", "Observations", "CELL_FIELDS"]
+__all__ = ["PlanarPatch", "Observations", "CELL_FIELDS", "runs_of"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 # How many observations the sensor model's noise prediction is worth against a cell's measured scatter.
@@ -54,6 +55,37 @@ _OFF_PLANE_SIGMA = 0.5
 # Per-cell sums, all weighted by the observation weight w = 1 / (total variance) except `information`
 # (sum of 1 / sensor variance) and `count`. `_fuse_points` writes them by position, in this order.
 CELL_FIELDS = ("weight", "u", "v", "h", "hh", "noise", "fit", "registration", "information", "count")
+
+
+def _capacity_for(needed: int, capacity: int) -> int:
+    """Cell storage for ``needed`` cells, grown from ``capacity`` by quarters.
+
+    Not by doubling: a large patch that outgrows its storage late in a long
+    run would double its memory for a few new cells; a quarter keeps the
+    slack (and the resident memory's steps) small at amortized constant cost.
+    """
+    capacity = max(capacity, 64)
+    while capacity < needed:
+        capacity += capacity // 4
+    return capacity
+
+
+def _table_size(capacity: int) -> int:
+    """Hash-table slots for ``capacity`` cells: a power of two, at most half full."""
+    return 1 << int(2 * capacity - 1).bit_length()
+
+
+def runs_of(frames: ArrayLike) -> np.ndarray:
+    """Runs of consecutive values in sorted, distinct frame numbers: (R, 2) first and last of each.
+
+    >>> runs_of([3, 4, 5, 9, 11, 12]).tolist()
+    [[3, 5], [9, 9], [11, 12]]
+    """
+    frames = np.asarray(frames, np.int64).reshape(-1)
+    if not len(frames):
+        return np.zeros((0, 2), np.int64)
+    breaks = np.flatnonzero(np.diff(frames) != 1) + 1
+    return np.column_stack([frames[np.r_[0, breaks]], frames[np.r_[breaks - 1, len(frames) - 1]]])
 
 
 @dataclass
@@ -105,8 +137,11 @@ class PlanarPatch:
     sums : dict of str -> (K,) float64
         The per-cell sums of `CELL_FIELDS` (the columns of one
         ``(K, len(CELL_FIELDS))`` array, `cells`; ``sums`` gives views).
-    frames : (F,) int64
-        Frames that contributed, in order (a list is accepted).
+    frame_runs : (R, 2) int64
+        Frames that contributed, as runs of consecutive frames: the first
+        and last frame of each run, in order (a list of pairs is accepted).
+        A patch in view is fused frame after frame, so a few runs stand for
+        thousands of frames; `frames` lists them one by one.
     moments : (9,) float64, optional
         Plane-fit sums of everything fused (from the cell means when omitted).
     misses : (K,) int32, optional
@@ -119,7 +154,7 @@ class PlanarPatch:
     cell_size: float
     coordinates: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int32))
     sums: dict[str, np.ndarray] = field(default_factory=dict, repr=False)
-    frames: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    frame_runs: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
     moments: np.ndarray | None = None
     misses: np.ndarray | None = field(default=None, repr=False, compare=False)
     # Bumped by every change of the cells, so that meshes and plane fits made from them can be cached.
@@ -132,8 +167,9 @@ class PlanarPatch:
         self.axes = np.asarray(self.axes, np.float64).reshape(3, 3)
         coordinates = np.asarray(self.coordinates, np.int32).reshape(-1, 2)
         count = len(coordinates)
-        # Cell storage grows by doubling; a hash table finds a cell's row from its grid coordinates.
-        capacity = max(64, 1 << int(np.ceil(np.log2(max(count, 1)))))
+        # Cell storage grows by a quarter when full (`_grow`); a hash table finds a cell's row from its grid
+        # coordinates.
+        capacity = _capacity_for(count, 0)
         self._coords = np.zeros((capacity, 3), np.int32)
         self._coords[:count, :2] = coordinates
         self._cells = np.zeros((capacity, len(CELL_FIELDS)))
@@ -143,11 +179,11 @@ class PlanarPatch:
                 raise ValueError(f"patch cell field {name!r} has {len(values)} values for {count} cells")
             self._cells[:count, index] = values
         self._count = count
-        self._table_keys, self._table_slots = empty_table(2 * capacity)
+        self._table_keys, self._table_slots = empty_table(_table_size(capacity))
         rehash(self._table_keys, self._table_slots, self._coords, count)
         self._stamps = np.zeros(capacity, np.int64)
         self._stamp = 0
-        self._frames = GrowingArray(dtype=np.int64, rows=self.frames)
+        self._frame_runs = GrowingArray((2,), np.int64, rows=self.frame_runs)
         self._misses = np.zeros(capacity, np.int32)
         if self.misses is not None:
             misses = np.asarray(self.misses, np.int32).reshape(-1)
@@ -169,22 +205,21 @@ class PlanarPatch:
         self.coordinates = self._coords[: self._count, :2]
         self.cells = self._cells[: self._count]
         self.misses = self._misses[: self._count]
-        self.frames = self._frames.values
+        self.frame_runs = self._frame_runs.values
         self.sums = {name: self.cells[:, index] for index, name in enumerate(CELL_FIELDS)}
 
     def _grow(self, needed: int) -> None:
-        capacity = len(self._coords)
-        while capacity < needed:
-            capacity *= 2
-        if capacity == len(self._coords):
+        if needed <= len(self._coords):
             return
+        capacity = _capacity_for(needed, len(self._coords))
         for name in ("_coords", "_cells", "_stamps", "_misses"):
             old = getattr(self, name)
             grown = np.zeros((capacity,) + old.shape[1:], old.dtype)
             grown[: self._count] = old[: self._count]
             setattr(self, name, grown)
-        self._table_keys, self._table_slots = empty_table(2 * capacity)
-        rehash(self._table_keys, self._table_slots, self._coords, self._count)
+        if len(self._table_slots) < _table_size(capacity):
+            self._table_keys, self._table_slots = empty_table(_table_size(capacity))
+            rehash(self._table_keys, self._table_slots, self._coords, self._count)
         self._views()
 
     @classmethod
@@ -209,6 +244,13 @@ class PlanarPatch:
     @property
     def n_cells(self) -> int:
         return self._count
+
+    @property
+    def frames(self) -> np.ndarray:
+        """The frames that contributed, one by one, (F,) int64 (from `frame_runs`)."""
+        first, last = self.frame_runs[:, 0], self.frame_runs[:, 1]
+        lengths = last - first + 1
+        return np.repeat(first - np.cumsum(lengths) + lengths, lengths) + np.arange(lengths.sum())
 
     @property
     def normal(self) -> np.ndarray:
@@ -341,7 +383,7 @@ class PlanarPatch:
                              hh=weight * local[:, 2] ** 2 + spread)
         self.moments += _moments(weight, local[:, 0], local[:, 1], local[:, 2])
         result = self._accumulate(local, contributions, frame)
-        self._frames = GrowingArray(dtype=np.int64, rows=np.union1d(self.frames, other.frames))
+        self._frame_runs = GrowingArray((2,), np.int64, rows=runs_of(np.union1d(self.frames, other.frames)))
         self._views()
         return result
 
@@ -365,8 +407,11 @@ class PlanarPatch:
 
     def _fused(self, frame: int, updated: int, added: int) -> tuple[int, int]:
         """Book-keeping after cells changed: the frame list, views, the revision."""
-        if not len(self._frames) or self._frames.values[-1] != frame:
-            self._frames.append(frame)
+        runs = self._frame_runs.values
+        if len(runs) and runs[-1, 1] + 1 == frame:
+            runs[-1, 1] = frame
+        elif not len(runs) or runs[-1, 1] != frame:
+            self._frame_runs.append((frame, frame))
         self._views()
         self.revision += 1
         return updated, added
