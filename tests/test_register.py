@@ -313,7 +313,7 @@ def test_tracker_takes_the_odometry_along_a_degenerate_direction():
     source = target - motion[:3, 3]  # what the moved sensor sees of the same corridor
     odometry = motion.copy()
     odometry[:3, 3] += [0.03, 0.02, 0.0]  # 3 cm too far along, 2 cm sideways
-    tracker = FrameTracker(odometry_sigma=(0.01, 0.02))
+    tracker = FrameTracker(odometry_sigma=(0.01, 0.02), odometry_relative=0.0)
     tracker.track(target, normals, odometry=np.eye(4))
     tracked = tracker.track(source, normals, odometry=odometry)
     assert tracked.registration.degenerate
@@ -355,7 +355,7 @@ def test_tracker_keeps_the_prior_when_icp_contradicts_it():
 
     target, normals = _corner(np.random.default_rng(4))
     source = _corner(np.random.default_rng(7))[0] - [0.01, 0.0, 0.0]  # the corner sampled anew, moved
-    strict = FrameTracker(odometry_sigma=(1e-4, 5e-4))
+    strict = FrameTracker(odometry_sigma=(1e-4, 5e-4), odometry_relative=0.0)
     strict.track(target, normals, odometry=np.eye(4))
     kept = strict.track(source, normals, odometry=np.eye(4))
     assert kept.fallback and kept.registration is None
@@ -364,6 +364,30 @@ def test_tracker_keeps_the_prior_when_icp_contradicts_it():
     loose.track(target, normals, odometry=np.eye(4))
     moved = loose.track(source, normals, odometry=np.eye(4))
     assert not moved.fallback and moved.T_world_sensor[0, 3] == pytest.approx(0.01, abs=1e-3)
+
+
+@pytest.mark.parametrize("length, trusted", [(0.01, False), (1.0, True)])
+def test_the_odometry_prior_grows_with_the_step(length, trusted):
+    """Odometry 5 cm off: on a 1 cm step between video frames that is far beyond what odometry errs, and ICP's
+    contrary motion is not believed (a slide along weak geometry looks just like this); on a 1 m step between
+    laser scans it is within the odometry's error, and ICP's motion stands."""
+    from rangesurf.register import FrameTracker
+
+    rng = np.random.default_rng(1)
+    target, normals = _corner(np.random.default_rng(4))
+    source = _corner(np.random.default_rng(7))[0] - [length, 0.0, 0.0]
+    # 1 cm of noise: ICP's robust weights then still see a wall 5 cm off (with 1 mm they would drop it).
+    target, source = target + rng.normal(0.0, 0.01, target.shape), source + rng.normal(0.0, 0.01, source.shape)
+    claimed = np.eye(4)
+    claimed[0, 3] = length + 0.05
+    tracker = FrameTracker()
+    covariance = tracker.prior_covariance(claimed)
+    assert np.sqrt(covariance[3, 3]) == pytest.approx(0.003 + 0.1 * (length + 0.05))
+    assert np.sqrt(covariance[0, 0]) == pytest.approx(0.01)  # no turn: the standstill's rotation sigma
+    tracker.track(target, normals, odometry=np.eye(4))
+    tracked = tracker.track(source, normals, odometry=claimed)
+    assert tracked.fallback is not trusted
+    assert tracked.T_world_sensor[0, 3] == pytest.approx(length if trusted else length + 0.05, abs=2e-3)
 
 
 def test_a_corrected_pose_carries_on_to_the_next_frames():

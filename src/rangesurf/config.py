@@ -13,7 +13,7 @@ Examples
 >>> PipelineConfig.from_dict({"merge": {"cell_sise": 0.02}})
 Traceback (most recent call last):
 ...
-rangesurf.config.ConfigError: config: unknown key 'merge.cell_sise'; the merge section has: bridge, carve_every, cell_size, max_normal_angle, max_plane_distance, min_overlap, nonplanar, stride, volume, voxel_size
+rangesurf.config.ConfigError: config: unknown key 'merge.cell_sise'; the merge section has: bridge, carve_every, cell_size, fold_every, max_normal_angle, max_plane_distance, min_overlap, nonplanar, stride, volume, voxel_size
 """
 
 from __future__ import annotations
@@ -62,6 +62,9 @@ class RegisterSettings:
     pixels on, the grid segmentation grows on -- 3 at 640x480 -- else 1):
     ICP needs far fewer points than a depth camera gives. ``icp_variance_scale``: how much ICP's independent-residual
     covariance understates its error (see `FrameTracker`).
+    ``odometry_sigma_rotation`` (radians) and ``odometry_sigma_translation``
+    (metres): the odometry's error per frame and axis at a standstill, plus
+    ``odometry_sigma_relative`` times the step's own angle and length.
     ``align_to_model_every``: every n-th frame's pose is corrected by its
     planes' fit to the model (`GlobalModel.align`: revisited places pull a
     drifted pose back); 0 switches it off.
@@ -69,7 +72,8 @@ class RegisterSettings:
 
     max_correspondence_distance: float = 0.1
     odometry_sigma_rotation: float = 0.01
-    odometry_sigma_translation: float = 0.02
+    odometry_sigma_translation: float = 0.003
+    odometry_sigma_relative: float = 0.1
     keyframe_distance: float = 0.3
     keyframe_angle: float = 10.0
     decimate: int | None = None
@@ -90,6 +94,8 @@ class MergeSettings:
     ``voxel_size`` None: the cell size. ``carve_every``: every n-th frame
     removes the model's cells it sees through (`GlobalModel.carve`: copies
     built while the pose had slipped, objects that moved away); 0 switches
+    it off. ``fold_every``: every n-th frame folds patches that a larger
+    one has grown over into it (`GlobalModel.fold_fragments`); 0 switches
     it off.
     """
 
@@ -103,6 +109,7 @@ class MergeSettings:
     volume: str = "off"
     voxel_size: float | None = None
     carve_every: int = 10
+    fold_every: int = 50
 
 
 @dataclass(frozen=True)
@@ -171,7 +178,8 @@ class PipelineConfig:
             if value is not None and value < 1:
                 raise ConfigError(f"config: {name} must be >= 1 or unset, got {value}")
         for name in ("register.keyframe_distance", "register.keyframe_angle", "register.align_to_model_every",
-                     "merge.carve_every", "run.remesh_every", "run.checkpoint_every", "run.release_memory_every",
+                     "register.odometry_sigma_relative",
+                     "merge.carve_every", "merge.fold_every", "run.remesh_every", "run.checkpoint_every", "run.release_memory_every",
                      "merge.bridge"):
             if self._get(name) is not None and self._get(name) < 0:
                 raise ConfigError(f"config: {name} must be >= 0, got {self._get(name)}")

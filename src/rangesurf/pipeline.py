@@ -131,6 +131,7 @@ class Pipeline:
         self.tracker = FrameTracker(
             max_correspondence_distance=settings.max_correspondence_distance,
             odometry_sigma=(settings.odometry_sigma_rotation, settings.odometry_sigma_translation),
+            odometry_relative=settings.odometry_sigma_relative,
             keyframe_distance=settings.keyframe_distance, keyframe_angle=settings.keyframe_angle,
         )
         merge = self.config.merge
@@ -255,6 +256,11 @@ class Pipeline:
         if every and projection is not None and self.frames % every == 0:
             # Free space: cells this frame sees through (a copy built while the pose had slipped) go.
             self.model.carve(smooth, projection, tracked.T_world_sensor, range_sigma=sigma, covariance=tracked.covariance)
+        every = self.config.merge.fold_every
+        if every and (self.frames + 1) % every == 0:
+            # Fragments that a patch has since grown over are folded into it: re-seen on every lap, they
+            # would make the model grow with time rather than with the area seen.
+            self.model.fold_fragments()
         lap("merge")
 
         if self.config.merge.volume != "off":

@@ -457,8 +457,16 @@ class FrameTracker:
     max_correspondence_distance : float
         Metres (`icp`).
     odometry_sigma : (float, float)
-        Standard deviation of the prior's motion per frame: rotation
-        (radians) and translation (metres), per axis.
+        Standard deviation of the prior's motion per frame, per axis, at a
+        standstill: rotation (radians) and translation (metres).
+    odometry_relative : float
+        Plus this share of the prior step's own rotation angle and
+        translation length: odometry errs in proportion to the motion
+        (wheel slip), so a 1 cm step between two depth-camera frames and a
+        1 m step between two laser scans both get a fitting prior. A prior
+        as tight as the odometry truly is matters: the chi-square gate
+        catches ICP sliding along a weakly constrained direction only when
+        the prior does not allow the slide.
     keyframe_distance, keyframe_angle : float
         Metres and degrees of motion from the keyframe that make a new one
         (0: every frame is a keyframe, plain frame-to-frame tracking).
@@ -495,7 +503,8 @@ class FrameTracker:
         self,
         *,
         max_correspondence_distance: float = 0.1,
-        odometry_sigma: tuple[float, float] = (0.01, 0.02),
+        odometry_sigma: tuple[float, float] = (0.01, 0.003),
+        odometry_relative: float = 0.1,
         keyframe_distance: float = 0.3,
         keyframe_angle: float = 10.0,
         method: str = "point_to_plane",
@@ -505,6 +514,8 @@ class FrameTracker:
             raise ValueError(f"method must be one of {ICP_METHODS}, got {method!r}")
         if not (len(odometry_sigma) == 2 and all(value > 0 for value in odometry_sigma)):
             raise ValueError(f"odometry_sigma must be two values > 0 (radians, metres), got {odometry_sigma!r}")
+        if not (math.isfinite(odometry_relative) and odometry_relative >= 0):
+            raise ValueError(f"odometry_relative must be finite and >= 0, got {odometry_relative!r}")
         if not (keyframe_distance >= 0 and keyframe_angle >= 0):
             raise ValueError("keyframe_distance and keyframe_angle must be >= 0")
         if not (math.isfinite(icp_variance_scale) and icp_variance_scale > 0):
@@ -514,7 +525,8 @@ class FrameTracker:
         self.method = method
         self.keyframe_distance = float(keyframe_distance)
         self.keyframe_angle = float(keyframe_angle)
-        self.prior_covariance = np.diag([odometry_sigma[0] ** 2] * 3 + [odometry_sigma[1] ** 2] * 3)
+        self.odometry_sigma = (float(odometry_sigma[0]), float(odometry_sigma[1]))
+        self.odometry_relative = float(odometry_relative)
         # The keyframe: points, normals, world pose and its covariance.
         self._keyframe: tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray] | None = None
         self._key_inliers: float | None = None
@@ -555,11 +567,11 @@ class FrameTracker:
             return TrackedPose(self.pose.copy(), self.covariance.copy(), None, "first")
         if odometry_pose is not None and self._previous_odometry is not None:
             step, prior_name = np.linalg.inv(self._previous_odometry) @ odometry_pose, "odometry"
-            prior_covariance = self.prior_covariance
+            prior_covariance = self.prior_covariance(step)
         else:
             # A constant-velocity guess knows less than odometry does.
             step, prior_name = self._motion, "constant_velocity"
-            prior_covariance = _CONSTANT_VELOCITY_SCALE * self.prior_covariance
+            prior_covariance = _CONSTANT_VELOCITY_SCALE * self.prior_covariance(step)
         key_points, key_normals, key_pose, key_covariance = self._keyframe
         prior = np.linalg.inv(key_pose) @ self.pose @ step
         result = fused = None
@@ -596,6 +608,14 @@ class FrameTracker:
             self._keyframe = (points, normals, pose.copy(), covariance.copy())
             self._key_inliers = None
         return TrackedPose(pose.copy(), covariance.copy(), result, prior_name, result is None, step_covariance)
+
+    def prior_covariance(self, step: np.ndarray) -> np.ndarray:
+        """Covariance (6, 6: rotation vector, translation) of a prior's motion ``step`` (4, 4)."""
+        angle = float(np.linalg.norm(_log(step[:3, :3])))
+        length = float(np.linalg.norm(step[:3, 3]))
+        rotation = self.odometry_sigma[0] + self.odometry_relative * angle
+        translation = self.odometry_sigma[1] + self.odometry_relative * length
+        return np.diag([rotation**2] * 3 + [translation**2] * 3)
 
     def correct(self, T_world_sensor: ArrayLike, covariance: ArrayLike) -> None:
         """Move the last tracked pose to a corrected one (e.g. `rangesurf.merge.GlobalModel.align`).

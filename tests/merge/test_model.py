@@ -159,6 +159,31 @@ def test_a_segment_with_a_wrong_normal_over_a_patch_is_a_view_of_it():
     assert beyond.created == 1 and rising.created == 1
 
 
+def test_a_fragment_the_patch_has_grown_over_is_folded_into_it():
+    """A strip seen first with a normal 30 degrees off starts a patch; the floor seen afterwards grows over it.
+    Folding moves the strip's cells into the floor: one patch, no vertex more than the floor has, still flat.
+    A panel rising 30 degrees from the floor's edge and a parallel board 20 cm above it are surfaces of their own."""
+    model = GlobalModel(cell_size=0.02)
+    model.add_frame([_misfit((1.2, 1.6))], np.eye(4))
+    model.add_frame([_panel(0.0, (0.0, 2.0))], np.eye(4))
+    model.add_frame([_panel(30.0, (2.0, 2.4))], np.eye(4))
+    board = _panel(0.0, (0.2, 0.8))
+    board.vertices[:, 2] -= 0.2
+    board.plane[3] += 0.2
+    model.add_frame([board], np.eye(4))
+    assert len(model.patches) == 4
+    strip = model.patches[0]
+    floor_cells = max(patch.n_cells for patch in model.patches)
+    before = model.n_vertices
+    assert model.fold_fragments() == 1
+    assert len(model.patches) == 3 and all(patch is not strip for patch in model.patches)
+    floor = max(model.patches, key=lambda patch: patch.n_cells)
+    assert floor.n_cells == floor_cells and model.n_vertices == before - strip.n_cells  # all fell on the floor's cells
+    assert floor.frame_runs.tolist() == [[0, 1], [3, 3]]  # the strip's frame, and the fold's
+    assert np.abs(floor.distance_to(floor.origin + np.column_stack(floor.cell_means()) @ floor.axes)).max() < 0.005
+    assert model.fold_fragments() == 0  # nothing left to fold
+
+
 @pytest.fixture(scope="module")
 def arena_run():
     frames, truths = simulate.simulate_sequence("arena", "sr3000", 12, seed=3)

@@ -54,6 +54,9 @@ _ALIGN_GATE = 20.0
 # (this share of its points), is a view of the patch (`GlobalModel._covered_by`).
 _COVER_ANGLE = 45.0
 _COVERED = 0.8
+# A patch folds into a larger one when this share of its cells lies on the larger one's plane
+# (`GlobalModel.fold_fragments`).
+_ON_PLANE = 0.95
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
@@ -350,7 +353,7 @@ class GlobalModel:
             normal = normal / np.linalg.norm(normal)
             plane = np.r_[normal, -normal @ points.mean(axis=0)]
             observations = _observations(surface, points, normal, bounded)
-            candidates = self._candidates(plane, points, self._reach(observations))
+            candidates = self._candidates(plane, points, self._reach(observations.median_variance()))
             if not candidates:
                 continue
             patch = self.patches[max(candidates)[1]]
@@ -444,13 +447,52 @@ class GlobalModel:
             self.cells_carved += removed
         return removed
 
-    def _reach(self, observations: Observations) -> float:
-        """How far (metres) these observations may lie from a patch's plane and still be on it."""
-        return self.max_plane_distance or max(3.0 * math.sqrt(observations.median_variance()), 2.0 * self.cell_size)
+    def fold_fragments(self) -> int:
+        """Fold each patch that another, larger one covers into it; returns how many were folded.
 
-    def _nearby(self, plane: np.ndarray, points: np.ndarray, reach: float, angle: float) -> list[int]:
-        """Indices of the patches within ``angle`` degrees of a surface's normal, whose box comes within
-        touching distance of its world points and whose plane they lie on (median distance within reach)."""
+        A segment at a crease or a patch's ragged edge can come with a
+        normal tens of degrees off; where the patch it belongs to had no
+        cells yet, it started a patch of its own (`_covered_by` takes such
+        views only over cells a patch already has). Once the larger patch
+        has grown over it, the fragment is a second copy of the same
+        surface, re-seen and kept on every lap of a long run: the model
+        would grow with time instead of with the area seen. A patch whose
+        cells lie on a larger patch's plane, `_COVERED` of them over its
+        occupied cells, with normals up to `_COVER_ANGLE` apart, moves its
+        cells into it (`PlanarPatch.absorb`: their sums and spread are
+        kept). The frame of the fold is the last frame merged.
+        """
+        if len(self.patches) < 2:
+            return 0
+        frame = max(self.n_frames - 1, 0)
+        folded = []
+        # Smallest first: a fragment goes into the largest patch that covers it, never the reverse.
+        for patch in sorted(self.patches, key=lambda patch: patch.n_cells):
+            u, v, h = patch.cell_means()
+            # A sample of 500 cells tells on-plane and covered shares to a few per cent.
+            step = max(1, len(u) // 500)
+            points = patch.origin + np.column_stack([u[::step], v[::step], h[::step]]) @ patch.axes
+            variance = (patch.sums["noise"] + patch.sums["fit"] + patch.sums["registration"]) / patch.sums["weight"]
+            reach = self._reach(float(np.median(variance)))
+            covering = self._covered_by(patch.world_plane(), points, reach, larger_than=patch.n_cells, excluding=folded)
+            # All but a few cells on the larger patch's plane, not merely most: a ramp patch that took in a band
+            # of the floor at its foot has most cells over the floor and is still a ramp.
+            if covering is not None and np.mean(np.abs(self.patches[covering].distance_to(points)) <= reach) >= _ON_PLANE:
+                self.patches[covering].absorb(patch, frame)
+                folded.append(patch)
+        if folded:
+            self.patches = [patch for patch in self.patches if all(patch is not other for other in folded)]
+            self._normals = None
+        return len(folded)
+
+    def _reach(self, median_variance: float) -> float:
+        """How far (metres) observations with this median variance may lie from a patch's plane and still be on it."""
+        return self.max_plane_distance or max(3.0 * math.sqrt(median_variance), 2.0 * self.cell_size)
+
+    def _nearby(self, plane: np.ndarray, points: np.ndarray, reach: float, angle: float, larger_than: int = 0) -> list[int]:
+        """Indices of the patches of more than ``larger_than`` cells within ``angle`` degrees of a surface's normal,
+        whose box comes within touching distance of its world points and whose plane they lie on (median distance
+        within reach)."""
         if not self.patches:
             return []
         if self._normals is None or len(self._normals) != len(self.patches):
@@ -465,6 +507,8 @@ class GlobalModel:
         nearby = []
         for index in np.flatnonzero(self._normals @ plane[:3] >= math.cos(math.radians(angle))):
             patch = self.patches[index]
+            if patch.n_cells <= larger_than:
+                continue
             patch_low, patch_high = patch.bounds()
             if (patch_low > high).any() or (patch_high < low).any():
                 continue
@@ -481,7 +525,8 @@ class GlobalModel:
             candidates = [(self.patches[index].touching(points, self.bridge + 1), index) for _, index in candidates]
         return candidates
 
-    def _covered_by(self, plane: np.ndarray, points: np.ndarray, reach: float) -> int | None:
+    def _covered_by(self, plane: np.ndarray, points: np.ndarray, reach: float, *, larger_than: int = 0,
+                    excluding: list[PlanarPatch] = ()) -> int | None:
         """The index of the patch a surface with a doubtful normal merely sees again, if any.
 
         A small or noisy segment's fitted normal can be tens of degrees off
@@ -491,17 +536,21 @@ class GlobalModel:
         normal up to `_COVER_ANGLE` off, the points lie on the patch's plane
         and `_COVERED` of them fall into its occupied cells: a surface of
         its own meeting the patch at a crease does not lie over the patch's
-        cells.
+        cells. Only patches of more than ``larger_than`` cells and not in
+        ``excluding`` are considered (`fold_fragments`).
         """
         best, most = None, 0
-        for index in self._nearby(plane, points, reach, _COVER_ANGLE):
-            inside = self.patches[index].touching(points, 0)
+        for index in self._nearby(plane, points, reach, _COVER_ANGLE, larger_than):
+            patch = self.patches[index]
+            if any(patch is other for other in excluding):
+                continue
+            inside = patch.touching(points, 0)
             if inside >= _COVERED * len(points) and inside > most:
                 best, most = index, inside
         return best
 
     def _merge(self, plane: np.ndarray, observations: Observations, frame: int, counts: dict[str, int]) -> None:
-        reach = self._reach(observations)
+        reach = self._reach(observations.median_variance())
         cosine = math.cos(math.radians(self.max_normal_angle))
         candidates = self._candidates(plane, observations.points, reach)
         if not candidates:
