@@ -46,7 +46,8 @@ from rangesurf.pipeline import Pipeline  # noqa: E402
 from rangesurf.uncertainty import distance_to_planes  # noqa: E402
 
 # Odometry sigmas that make the tracker keep the (exact) odometry pose.
-_TRUSTED = PipelineConfig(register=RegisterSettings(odometry_sigma_rotation=1e-7, odometry_sigma_translation=1e-7))
+_TRUSTED = PipelineConfig(register=RegisterSettings(odometry_sigma_rotation=1e-7, odometry_sigma_translation=1e-7,
+                                                    odometry_sigma_relative=0.0))
 # Pixels per frame scored for UL3 (every n-th segmented pixel).
 _UL3_SAMPLE = 7
 

@@ -269,6 +269,11 @@ class TrajectorySpec:
         arc = np.concatenate([[0.0], np.cumsum(0.5 * (speeds[1:] + speeds[:-1]) * np.diff(parameter))])
         return spline, arc, parameter
 
+    @property
+    def lap_length(self) -> float:
+        """Length of one lap of the loop (metres)."""
+        return float(self._path[1][-1])
+
     def at(self, distance: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Position ``(N, 2)`` and heading ``(N,)`` (radians) after driving ``distance`` metres."""
         spline, arc, parameter = self._path

@@ -11,7 +11,15 @@ along its normal:
   inverse-variance weighted mean of its observations,
   ``1 / sum(1 / sigma_i^2)``, scaled by how much those observations really
   scatter against the model's prediction once several are in
-  (`rangesurf.merge.planar`).
+  (`rangesurf.merge.planar`). That shrinks with every frame fused, so
+  what frames do not average must not reach the vertices: denoising's own
+  systematic error (diffusion lengthens a plane's convex range image and
+  rounds creases, by up to 0.1 sigma at close range) is estimated from the
+  segments' noise-free planes and removed before merging
+  (`rangesurf.denoise.diffusion.remove_diffusion_bias`), and the segments'
+  residuals are measured about the corrected points. A bridged vertex
+  (not seen, on the fitted plane) takes the UL1 and UL2 of the cells around
+  its gap.
 * **UL2, patch fit**: for a frame's segment, its plane fit's RMS residual;
   for a fused vertex, the part of its distance from its patch's fitted plane
   that UL1 does not explain (half that distance as one sigma: the +-2 sigma

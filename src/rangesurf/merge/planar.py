@@ -502,7 +502,8 @@ class PlanarPatch:
             Gaps up to ``2 * bridge`` cells wide are closed (morphological
             closing of the occupied cells); the vertices filling them lie on
             the fitted plane and get UL3 = the gap's half width, since
-            nothing was seen there.
+            nothing was seen there, and the RMS UL1 and UL2 of the observed
+            cells within ``bridge`` cells of them.
         label : int
             Stored as the surface's ``segment``.
         """
@@ -560,8 +561,12 @@ class PlanarPatch:
             facing = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0]) @ self.normal
             faces[facing < 0] = faces[facing < 0][:, ::-1]
         gap = bridge * self.cell_size
-        fill_ul1 = np.full(len(fill_u), np.median(ul1) if len(ul1) else 0.0)
-        fill_ul2 = np.zeros(len(fill_u))  # on the fitted plane by construction
+        # A bridged vertex lies on the fitted plane but was not seen: how far the plane is from the surface
+        # there is known only from the cells around the gap, so it takes their noise and fit levels (the
+        # patch's median UL1 and no fit error said far too little where the plane is off the surface
+        # locally: simulated SR-3000 corridor, 48 % of bridged vertices within +-2 sigma).
+        fill_ul1, fill_ul2 = _levels_around(image.shape, rows - row0, columns - column0, (ul1, ul2),
+                                            fill_rows, fill_columns, reach=bridge)
         uncertainty = {
             "UL1": np.r_[ul1, fill_ul1], "UL2": np.r_[ul2, fill_ul2], "UL3": np.r_[ul3, np.full(len(fill_u), gap)],
         }
@@ -569,6 +574,27 @@ class PlanarPatch:
             vertices=points, faces=faces, normals=np.tile(self.world_plane()[:3], (count, 1)),
             pixels=np.full((count, 2), -1), plane=self.world_plane(), segment=label, uncertainty=uncertainty,
         )
+
+
+def _levels_around(shape: tuple[int, int], rows: np.ndarray, columns: np.ndarray, levels: tuple[np.ndarray, ...],
+                   at_rows: np.ndarray, at_columns: np.ndarray, *, reach: int) -> list[np.ndarray]:
+    """Root mean square of each level over the cells within ``reach`` cells (chessboard) of given grid places.
+
+    ``rows, columns`` place the cells whose ``levels`` (each ``(K,)``) are
+    known on a grid of ``shape``; returns, per level, an ``(M,)`` array for
+    the places ``at_rows, at_columns`` (0 where no known cell is in reach;
+    a closing of the cells leaves none such).
+    """
+    window = (2 * reach + 1, 2 * reach + 1)
+
+    def window_sums(values: np.ndarray) -> np.ndarray:
+        grid = np.zeros(shape, np.float32)
+        grid[rows, columns] = values
+        summed = cv2.boxFilter(grid, -1, window, normalize=False, borderType=cv2.BORDER_CONSTANT)
+        return summed[at_rows, at_columns].astype(np.float64)
+
+    count = np.maximum(window_sums(np.ones(len(rows))), 1.0)
+    return [np.sqrt(window_sums(np.square(level)) / count) for level in levels]
 
 
 def _moments(weight: np.ndarray, u: np.ndarray, v: np.ndarray, h: np.ndarray) -> np.ndarray:
