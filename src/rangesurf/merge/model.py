@@ -299,7 +299,7 @@ class GlobalModel:
                 continue
             normal = rotation @ surface.plane[:3]
             scale = np.linalg.norm(normal)
-            plane = np.r_[normal, surface.plane[3] - normal @ translation] / scale
+            plane = np.append(normal, surface.plane[3] - normal @ translation) / scale
             observations = _observations(surface, points, plane[:3], pose_covariance)
             self._merge(plane, observations, frame, counts)
         self._poses.append(pose[:3])

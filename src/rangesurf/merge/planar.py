@@ -33,6 +33,7 @@ References
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 
 import cv2
@@ -160,6 +161,7 @@ class PlanarPatch:
     # Bumped by every change of the cells, so that meshes and plane fits made from them can be cached.
     revision: int = field(default=0, compare=False)
     _plane: tuple[int, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+    _world_plane: tuple[int, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
     _bounds: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -287,13 +289,15 @@ class PlanarPatch:
 
     def world_plane(self) -> np.ndarray:
         """The fitted plane in world coordinates, ``(nx, ny, nz, d)`` with the normal facing like the patch's."""
-        a, b, c = self.fitted_plane()
-        # h - a u - b v - c = 0 in the patch frame.
-        local_normal = np.array([-a, -b, 1.0])
-        normal = local_normal @ self.axes
-        scale = np.linalg.norm(normal)
-        offset = -c - normal @ self.origin
-        return np.r_[normal, offset] / scale
+        # Cached per revision: merging asks for it for every nearby patch, several times per surface.
+        if self._world_plane is None or self._world_plane[0] != self.revision:
+            a, b, c = self.fitted_plane()
+            # h - a u - b v - c = 0 in the patch frame.
+            normal = np.array([-a, -b, 1.0]) @ self.axes
+            plane = np.empty(4)
+            plane[:3], plane[3] = normal, -c - normal @ self.origin
+            self._world_plane = (self.revision, plane / math.sqrt(normal @ normal))
+        return self._world_plane[1].copy()
 
     def occupancy(self, margin: int = 0) -> tuple[np.ndarray, int, int]:
         """Occupied cells as an image (rows v, columns u) with ``margin`` empty cells around; and its origin cell."""
