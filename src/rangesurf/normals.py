@@ -488,6 +488,9 @@ def _fixed_window_fit(table, radius):  # pragma: no cover - compiled
 def _box_normals(table, points, valid, radius, distance, sigma, depth_jump, gated_radius):  # pragma: no cover - compiled
     height, width = valid.shape
     normals = np.full((height, width, 3), np.nan, dtype=np.float32)
+    gated_rows, gated_cols = np.nonzero(valid & (radius < 1))
+    gated = _gated_sums(points, valid, distance, sigma, depth_jump, gated_rows, gated_cols, gated_radius)
+    n_gated = 0
     sums = np.zeros(10)
     normal = np.zeros(3)
     for i in range(height):
@@ -497,7 +500,9 @@ def _box_normals(table, points, valid, radius, distance, sigma, depth_jump, gate
             if radius[i, j] >= 1:
                 _window_sums(table, i, j, radius[i, j], sums)
             else:
-                _gated_sums(points, valid, distance, sigma, depth_jump, i, j, gated_radius, sums)
+                # Gated pixels come in raster order, as in the list.
+                sums[:] = gated[n_gated]
+                n_gated += 1
             if _smallest_eigen(sums, normal) < 0.0:
                 continue
             facing = normal[0] * points[i, j, 0] + normal[1] * points[i, j, 1] + normal[2] * points[i, j, 2]
@@ -507,52 +512,59 @@ def _box_normals(table, points, valid, radius, distance, sigma, depth_jump, gate
     return normals
 
 
-@numba.njit(**_JIT, inline="always")
-def _gated_sums(points, valid, distance, sigma, depth_jump, i, j, radius, sums):  # pragma: no cover - compiled
-    """Moments of the neighbours on the centre's side of a depth jump (range within the jump threshold)."""
+@numba.njit(**_JIT)
+def _gated_sums(points, valid, distance, sigma, depth_jump, rows, cols, radius):  # pragma: no cover - compiled
+    """Moments ``(n, 10)`` of the neighbours on the centre's side of a depth jump (range within the jump threshold), for each pixel ``(rows[k], cols[k])``.
+
+    One call for all the pixels that need them: a function taking the
+    arrays, called (or inlined) once per pixel, costs more in reference
+    counting of its array arguments than in arithmetic.
+    """
     height, width = valid.shape
-    centre = distance[i, j]
-    gate = depth_jump * centre
-    if sigma[i, j] == sigma[i, j]:
-        gate = max(gate, 4.0 * sigma[i, j])
-    # Relative to the centre point, for precision; summed in registers (a sum in memory waits on
-    # its previous update at every point).
-    ox = points[i, j, 0]
-    oy = points[i, j, 1]
-    oz = points[i, j, 2]
-    n = sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
-    first = max(j - radius, 0)
-    last = min(j + radius + 1, width)
-    for r in range(max(i - radius, 0), min(i + radius + 1, height)):
-        valid_row = valid[r]
-        distance_row = distance[r]
-        points_row = points[r]
-        for c in range(first, last):
-            # Branch-free: whether a neighbour is in is unpredictable, a mispredicted branch costs more.
-            inside = valid_row[c] & (abs(distance_row[c] - centre) <= gate)
-            x = np.float64(points_row[c, 0] - ox) if inside else 0.0
-            y = np.float64(points_row[c, 1] - oy) if inside else 0.0
-            z = np.float64(points_row[c, 2] - oz) if inside else 0.0
-            n += 1.0 if inside else 0.0
-            sx += x
-            sy += y
-            sz += z
-            sxx += x * x
-            sxy += x * y
-            sxz += x * z
-            syy += y * y
-            syz += y * z
-            szz += z * z
-    sums[0] = n
-    sums[1] = sx
-    sums[2] = sy
-    sums[3] = sz
-    sums[4] = sxx
-    sums[5] = sxy
-    sums[6] = sxz
-    sums[7] = syy
-    sums[8] = syz
-    sums[9] = szz
+    sums = np.empty((rows.size, 10))
+    for k in range(rows.size):
+        i = rows[k]
+        j = cols[k]
+        centre = distance[i, j]
+        gate = depth_jump * centre
+        if sigma[i, j] == sigma[i, j]:
+            gate = max(gate, 4.0 * sigma[i, j])
+        # Relative to the centre point, for precision; summed in registers (a sum in memory waits on
+        # its previous update at every point).
+        ox = points[i, j, 0]
+        oy = points[i, j, 1]
+        oz = points[i, j, 2]
+        n = sx = sy = sz = sxx = sxy = sxz = syy = syz = szz = 0.0
+        first = max(j - radius, 0)
+        last = min(j + radius + 1, width)
+        for r in range(max(i - radius, 0), min(i + radius + 1, height)):
+            for c in range(first, last):
+                # Branch-free: whether a neighbour is in is unpredictable, a mispredicted branch costs more.
+                inside = valid[r, c] & (abs(distance[r, c] - centre) <= gate)
+                x = np.float64(points[r, c, 0] - ox) if inside else 0.0
+                y = np.float64(points[r, c, 1] - oy) if inside else 0.0
+                z = np.float64(points[r, c, 2] - oz) if inside else 0.0
+                n += 1.0 if inside else 0.0
+                sx += x
+                sy += y
+                sz += z
+                sxx += x * x
+                sxy += x * y
+                sxz += x * z
+                syy += y * y
+                syz += y * z
+                szz += z * z
+        sums[k, 0] = n
+        sums[k, 1] = sx
+        sums[k, 2] = sy
+        sums[k, 3] = sz
+        sums[k, 4] = sxx
+        sums[k, 5] = sxy
+        sums[k, 6] = sxz
+        sums[k, 7] = syy
+        sums[k, 8] = syz
+        sums[k, 9] = szz
+    return sums
 
 
 @numba.njit(**_JIT)
@@ -600,10 +612,13 @@ def _spikes_and_jumps(distance, valid, sigma, depth_jump, check_sigma=False):  #
     for k in range(size):
         if right_pair[k] | below_pair[k]:  # one test for the common case, neither
             i, j = k // width, k % width
-            if right_pair[k] and _is_ramp(distance, valid, i, j, 0, 1):
-                right_pair[k] = False
-            if below_pair[k] and _is_ramp(distance, valid, i, j, 1, 0):
-                below_pair[k] = False
+            # A ramp needs a valid pixel before the pair and one after it.
+            if right_pair[k] and 0 < j < width - 2 and valid_flat[k - 1] and valid_flat[k + 2]:
+                right_pair[k] = not _is_ramp(distance_flat[k - 1], distance_flat[k], distance_flat[k + 1], distance_flat[k + 2])
+            if below_pair[k] and 0 < i < height - 2 and valid_flat[k - width] and valid_flat[k + 2 * width]:
+                below_pair[k] = not _is_ramp(
+                    distance_flat[k - width], distance_flat[k], distance_flat[k + width], distance_flat[k + 2 * width]
+                )
     # Spikes: a jump against three or four neighbours. Clean: valid and not a spike (pixel k at clean[k + width]).
     clean = np.zeros(size + 2 * width, np.bool_)
     _clean_flags(right_pair[:size], across[:size], below_pair[:size], down[:size], valid_flat, clean[width : width + size])
@@ -658,26 +673,20 @@ def _is_jump(a, b, noise, depth_jump, step):  # pragma: no cover - compiled
     return gap * gap > max(relative * relative, noise)
 
 
-@numba.njit(**_JIT)
-def _is_ramp(distance, valid, i, j, di, dj):  # pragma: no cover - compiled
-    """Whether the step from (i, j) to the next pixel continues the steps on both sides of it.
+@numba.njit(**_JIT, inline="always")
+def _is_ramp(before, here, there, after):  # pragma: no cover - compiled
+    """Whether the step between the ranges ``here`` and ``there`` of neighbouring pixels continues the steps on both sides of it.
 
-    A surface seen at a grazing angle (a floor far ahead) changes range by a
-    large step per pixel, but steadily; a depth jump is a step much larger
-    than its neighbours. Both neighbouring steps must agree in sign and lie
-    within a factor of two of this one.
+    ``before`` and ``after`` are the ranges of the pixels before and after
+    the pair along the same line. A surface seen at a grazing angle (a floor
+    far ahead) changes range by a large step per pixel, but steadily; a depth
+    jump is a step much larger than its neighbours. Both neighbouring steps
+    must agree in sign and lie within a factor of two of this one. (Ranges,
+    not the arrays: a function taking arrays costs atomic reference-count
+    updates at every call.)
     """
-    height, width = valid.shape
-    bi, bj = i - di, j - dj
-    ai, aj = i + 2 * di, j + 2 * dj
-    if bi < 0 or bj < 0 or ai >= height or aj >= width:
-        return False
-    if not (valid[bi, bj] and valid[ai, aj]):
-        return False
-    step = distance[i + di, j + dj] - distance[i, j]
-    before = distance[i, j] - distance[bi, bj]
-    after = distance[ai, aj] - distance[i + di, j + dj]
-    for other in (before, after):
+    step = there - here
+    for other in (here - before, after - there):
         if other * step <= 0.0 or abs(other) < 0.5 * abs(step) or abs(other) > 2.0 * abs(step):
             return False
     return True
@@ -805,7 +814,8 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
 
     Row by row, the largest window's fit is computed for every pixel in one
     branch-free loop (which the compiler vectorises); the pixels it does not
-    suit go down the ladder one by one.
+    suit go down the ladder one by one, and those with no clean window at
+    all are fitted together after the last row (`_gated_sums`).
     """
     height, width = valid.shape
     normals = np.empty((height, width, 3), dtype=np.float32)
@@ -829,6 +839,10 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
     accepted = np.zeros(width, np.bool_)
     sums = np.zeros(10)
     normal = np.zeros(3)
+    # Pixels without a clean window, fitted after the rows (`_gated_sums`).
+    gated_rows = np.empty(height * width, np.int64)
+    gated_cols = np.empty(height * width, np.int64)
+    n_gated = 0
     for i in range(height):
         rows, row_middle = _clipped_extent(i, largest, height)
         row_reciprocal = 1.0 / rows
@@ -935,16 +949,9 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
                 # depth jump. (Least squares of 1/z is more accurate on average there, but region growing
                 # finds more planes with these normals: thin strips between a jump and the border.)
                 radius[i, j] = -1
-                _gated_sums(points, valid, distance, sigma, depth_jump, i, j, gated_radius, sums)
-                if not _plane_normal(sums, normal):
-                    normals[i, j, 0] = np.nan
-                    normals[i, j, 1] = np.nan
-                    normals[i, j, 2] = np.nan
-                    continue
-                sign = -1.0 if normal[0] * points[i, j, 0] + normal[1] * points[i, j, 1] + normal[2] * points[i, j, 2] > 0.0 else 1.0
-                normals[i, j, 0] = sign * normal[0]
-                normals[i, j, 1] = sign * normal[1]
-                normals[i, j, 2] = sign * normal[2]
+                gated_rows[n_gated] = i
+                gated_cols[n_gated] = j
+                n_gated += 1
                 continue
             big_a = a * fx
             big_b = b * fy
@@ -961,6 +968,22 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
             normals[i, j, 1] = big_b * scale
             normals[i, j, 2] = big_c * scale
             radius[i, j] = found
+    gated = _gated_sums(points, valid, distance, sigma, depth_jump, gated_rows[:n_gated], gated_cols[:n_gated], gated_radius)
+    for k in range(n_gated):
+        i = gated_rows[k]
+        j = gated_cols[k]
+        # A copy, not a view of the row: a view per pixel costs two atomic reference-count updates.
+        for m in range(10):
+            sums[m] = gated[k, m]
+        if not _plane_normal(sums, normal):
+            normals[i, j, 0] = np.nan
+            normals[i, j, 1] = np.nan
+            normals[i, j, 2] = np.nan
+            continue
+        sign = -1.0 if normal[0] * points[i, j, 0] + normal[1] * points[i, j, 1] + normal[2] * points[i, j, 2] > 0.0 else 1.0
+        normals[i, j, 0] = sign * normal[0]
+        normals[i, j, 1] = sign * normal[1]
+        normals[i, j, 2] = sign * normal[2]
     return normals, radius
 
 
