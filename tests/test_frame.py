@@ -68,6 +68,24 @@ def test_sr3000_noise_is_one_percent_of_range_and_grows_for_dark_surfaces():
     np.testing.assert_allclose(dark, 2 * bright[1])
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_noise_sigma_of_images_is_the_formula_to_the_bit(dtype):
+    """Frames take the compiled path; it must give what the documented formula gives, NaN and odd values included."""
+    noise = rs.RangeNoiseModel(relative=0.01, floor=0.002, quadratic=0.001, reference_intensity=0.3, intensity_exponent=0.5)
+    rng = np.random.default_rng(1)
+    ranges = rng.uniform(0.01, 60.0, (30, 40)).astype(dtype)
+    intensity = rng.uniform(0.0, 1.2, ranges.shape).astype(dtype)
+    ranges[0, :3] = [np.nan, np.inf, 0.0]
+    intensity[1, :4] = [np.nan, 0.0, np.inf, -1.0]
+    r, i = ranges.astype(np.float64), intensity.astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        expected = (0.002 + 0.01 * r + 0.001 * r**2) * np.maximum((0.3 / np.maximum(i, 1e-6)) ** 0.5, 1.0)
+        no_gain = 0.002 + 0.01 * r + 0.001 * r**2
+    assert np.array_equal(noise.sigma(ranges, intensity), expected, equal_nan=True)
+    assert np.array_equal(noise.sigma(ranges), no_gain, equal_nan=True)
+    assert noise.sigma(2.0) == pytest.approx(0.002 + 0.02 + 0.004)  # scalars too
+
+
 def test_kinect_noise_grows_quadratically():
     sigma = rs.get_sensor("kinect").range_sigma(np.array([1.0, 2.0, 4.0]))
     growth = np.diff(sigma)

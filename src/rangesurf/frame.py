@@ -21,6 +21,7 @@ import math
 from dataclasses import dataclass, field
 from typing import Any, Literal
 
+import numba
 import numpy as np
 
 __all__ = [
@@ -166,10 +167,18 @@ class RangeNoiseModel:
             Normalised reflectance in [0, 1], same shape; ignored when the
             model has no ``reference_intensity``.
         """
-        range_m = np.asarray(range_m, dtype=np.float64)
+        range_m = np.asarray(range_m)
+        with_intensity = intensity is not None and self.reference_intensity > 0
+        intensity = np.asarray(intensity) if with_intensity else range_m
+        if range_m.ndim and range_m.dtype.kind == "f" and intensity.shape == range_m.shape and intensity.dtype.kind == "f":
+            # One compiled pass (every frame asks twice; NumPy's ten temporaries took 0.1 ms at 176x144).
+            return _noise_sigma(np.ascontiguousarray(range_m), np.ascontiguousarray(intensity), self.floor,
+                                self.relative, self.quadratic, self.reference_intensity if with_intensity else 0.0,
+                                self.intensity_exponent)
+        range_m = range_m.astype(np.float64)
         sigma = self.floor + self.relative * range_m + self.quadratic * range_m**2
-        if intensity is not None and self.reference_intensity > 0:
-            intensity = np.asarray(intensity, dtype=np.float64)
+        if with_intensity:
+            intensity = intensity.astype(np.float64)
             with np.errstate(divide="ignore", invalid="ignore"):
                 gain = (self.reference_intensity / np.maximum(intensity, 1e-6)) ** self.intensity_exponent
             sigma = sigma * np.maximum(gain, 1.0)
@@ -189,6 +198,28 @@ class RangeNoiseModel:
         far = ratio * near
         offset = -math.sqrt(2 / math.pi) * (far - near)
         return near, far, offset
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _noise_sigma(range_m, intensity, floor, relative, quadratic, reference, exponent):  # pragma: no cover - compiled
+    """`RangeNoiseModel.sigma` over same-shaped float arrays (``reference`` 0: no intensity gain), float64."""
+    sigma = np.empty(range_m.shape)
+    ranges, intensities, out = range_m.ravel(), intensity.ravel(), sigma.ravel()
+    for k in range(ranges.size):
+        r = np.float64(ranges[k])
+        value = floor + relative * r + quadratic * (r * r)
+        if reference > 0.0:
+            brightness = np.float64(intensities[k])
+            if math.isnan(brightness):
+                value = math.nan
+            else:
+                ratio = reference / max(brightness, 1e-6)
+                # sqrt for the usual shot-noise exponent: as NumPy's power does for 0.5, to the bit.
+                gain = math.sqrt(ratio) if exponent == 0.5 else ratio**exponent
+                if gain > 1.0:
+                    value *= gain
+        out[k] = value
+    return sigma
 
 
 # --------------------------------------------------------------------------
