@@ -1,6 +1,8 @@
 """The uncertainty levels against ground truth: calibrated bands on a simulated sequence."""
 
 import dataclasses
+import importlib.util
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,6 +33,25 @@ def test_coverage_counts_vertices_inside_the_band():
     assert np.isinf(distance_to_planes(vertices, np.tile([1.0, 0, 0], (4, 1)), np.array([[0.0, 0, 1, -2.0]]))).all()
 
 
+def _calibration_benchmark():
+    """``benchmarks/calibration.py`` as a module: the tests score UL1 on the vertices it scores."""
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration.py"
+    spec = importlib.util.spec_from_file_location("calibration_benchmark", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_distances_to_the_true_surfaces_reach_polygon_edges_and_tubes():
+    square = simulate.Polygon(1, [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    scene = simulate.Scene("square and pillar", (square,), (simulate.Cylinder(2, (5, 5), 0.5, 0, 1),))
+    points = np.array([[0.5, 0.5, -0.3], [2, 0.5, 1], [5, 5.5, 0.5], [5, 5, 2], [9, 9, 9]])
+    distances, ids = _calibration_benchmark().surface_distances(points, scene, reach=2.0)
+    assert ids.tolist() == [1, 2]
+    expected = [[0.3, np.inf], [np.sqrt(2), np.inf], [np.inf, 0.0], [np.inf, np.hypot(0.5, 1)], [np.inf, np.inf]]
+    assert distances == pytest.approx(np.array(expected), abs=1e-6)
+
+
 def _arena_run(exact: bool, n_frames: int = 40, scene: str = "arena"):
     """SR-3000 arena (or another scene) from the true poses (trusted) or from drifting odometry: (pipeline, frame
     results, true poses)."""
@@ -46,19 +67,20 @@ def _arena_run(exact: bool, n_frames: int = 40, scene: str = "arena"):
 
 @pytest.mark.parametrize("scene, n_frames", [("arena", 40), ("corridor", 100)])
 def test_the_sensor_level_holds_the_error_of_a_model_made_from_true_poses(scene, n_frames):
-    """With exact poses only the sensor errs: +-2 UL1 holds 90-98 % of the vertices' errors (UL2 = 0 ones).
+    """With exact poses only the sensor errs: +-2 UL1 holds 90-98 % of the errors of the vertices inside the true
+    planes (3 cells from any other surface; chosen from the ground truth: the vertices with UL2 = 0 lie within
+    2 UL1 of their fitted plane by UL2's definition).
 
     The corridor's walls and floor, seen obliquely and close by in 100 frames, held 81 % while the
-    diffusion's bias reached the model (it does not average away over frames; UL1 does).
+    diffusion's bias reached the model (it does not average away over frames; UL1 does). The arena over 100
+    frames holds 85 % (benchmarks/calibration.py): where many frames are fused, UL1 shrinks below the scatter left.
     """
     pipeline, _, _ = _arena_run(exact=True, n_frames=n_frames, scene=scene)
-    surfaces = pipeline.finish()
-    planes = simulate.get_scene(scene).planes
-    error = distance_to_planes(np.vstack([s.vertices for s in surfaces]), np.vstack([s.normals for s in surfaces]), planes)
-    ul1, ul2 = (np.concatenate([s.uncertainty[level] for s in surfaces]) for level in ("UL1", "UL2"))
-    scored = np.isfinite(error) & (error <= 0.2) & (ul2 == 0)
-    assert scored.sum() > 10_000
-    assert 0.9 <= np.mean(error[scored] <= 2 * ul1[scored]) <= 0.98
+    benchmark = _calibration_benchmark()
+    error, ul1 = benchmark.interior_errors(pipeline.finish(), simulate.get_scene(scene),
+                                           benchmark._INTERIOR_MARGIN_CELLS * pipeline.model.cell_size)
+    assert len(error) > 10_000
+    assert 0.9 <= np.mean(error <= 2 * ul1) <= 0.98
 
 
 def test_the_registration_level_holds_the_pose_errors_and_all_levels_the_model_error():

@@ -225,7 +225,10 @@ class Pipeline:
         # the sensor sigmas at the denoised range; benchmarks/calibration.py: corridor SR-3000 UL1 coverage
         # 81 -> 96 %).
         vertex_points, vertex_segmentation = points, segmentation
-        if self.config.denoise.method == "diffusion":
+        remove_bias = self.config.denoise.remove_bias
+        if remove_bias is None:
+            remove_bias = frame.range.size < _DENSE_FRAME
+        if self.config.denoise.method == "diffusion" and remove_bias:
             vertex_points, residuals = remove_diffusion_bias(smooth, frame.rays, segmentation.labels, segmentation.planes,
                                                              range_sigma=sigma)
             # The residuals (UL1's share of the noise left, and the frame's UL2) as measured on the
