@@ -83,6 +83,26 @@ def later_growth(table: np.ndarray, start: int) -> list[str]:
                 f"{growth[1]:+.2f} %, surface seen {growth[2]:+.2f} %."]
 
 
+def lap_times(times: np.ndarray, lap: int, start: int) -> list[str]:
+    """Sentences on the time per frame over whole laps: the first from ``start`` and the last.
+
+    The 500-frame windows at the ends of the span catch different stretches
+    of the lap, whose views cost differently; whole laps see the same. The
+    stages that see only the frame (denoise, segment, surfaces) do not depend
+    on the model, so their change between the laps is the machine's own
+    speed, which the total's change is set against.
+    """
+    if len(times) < start + 2 * lap:
+        return []
+    first, last = np.median(times[start : start + lap], axis=0), np.median(times[-lap:], axis=0)
+    growth = 100 * (last / first - 1)
+    relative = 100 * ((last[0] / last[1]) / (first[0] / first[1]) - 1)
+    return ["", f"Whole laps ({lap} frames), medians: the first from frame {start:,} and the last take {first[0]:.2f} and "
+                f"{last[0]:.2f} ms per frame ({growth[0]:+.1f} %); their stages that see only the frame (denoise, segment, "
+                f"surfaces), {first[1]:.2f} and {last[1]:.2f} ms ({growth[1]:+.1f} %: the machine's speed); the total "
+                f"relative to those {relative:+.1f} %."]
+
+
 def patrol(scene: str) -> simulate.Scene:
     """The scene with its trajectory's sway fitted to the lap: three whole sways per lap, so every lap is the same."""
     scene = simulate.get_scene(scene)
@@ -104,12 +124,15 @@ def main() -> None:
     samples = []  # (frame, rss MB, median ms of the last 100 frames, model vertices, cubes of surface seen)
     seen = None
     window = []
+    stage_times = []  # per frame: total ms, and the stages that see only the frame
     started = time.perf_counter()
     with threadpool_limits(limits=1, user_api="blas"):
         sequence = simulate.iter_sequence("arena", sensor, n_frames, seed=9, trajectory=true_poses)
         for index, (frame, truth) in enumerate(sequence):
             result = pipeline.process(dataclasses.replace(frame, pose=odometry[index]))
             window.append(result.timings["total"])
+            stage_times.append((result.timings["total"],
+                                sum(result.timings[stage] for stage in ("denoise", "segment", "surfaces"))))
             seen = seen or SeenArea(_SEEN_CUBE_CELLS * pipeline.model.cell_size)
             if index % 5 == 0:
                 seen.add(frame, truth)
@@ -121,6 +144,7 @@ def main() -> None:
                           f"{samples[-1][4]} cubes of surface seen, "
                           f"{pipeline.model.n_vertices} model vertices", flush=True)
     elapsed = time.perf_counter() - started
+    lap_frames = round(scene.trajectory.lap_length / min(scene.trajectory.speed / sensor.frame_rate, scene.trajectory.max_step))
     table = np.array(samples)
     after = table[table[:, 0] >= min(1000, n_frames // 2)]
     # Each end's figure is the median of the five samples (500 frames) at that end of the span: one
@@ -149,6 +173,7 @@ def main() -> None:
         f"| surface seen (cubes of {seen.cell * 1000:.1f} mm) | {first[4]:,.0f} | {last[4]:,.0f} | "
         f"{100 * (last[4] / first[4] - 1):+.2f} % | |",
         *later_growth(table, 3000),
+        *lap_times(np.array(stage_times), lap_frames, min(1000, n_frames // 2)),
         "", f"Peak RSS {resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024:.0f} MB; model at the end: "
         f"{pipeline.model.n_vertices} vertices in {len(pipeline.model.patches)} patches; {pipeline.model.cells_carved} cells "
         f"carved as seen-through free space; late frames {pipeline.late}.",
