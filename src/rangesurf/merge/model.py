@@ -8,6 +8,10 @@ cells -- then fuses it into them (`rangesurf.merge.planar`). Patches that a
 surface shows to be one plane are merged. A surface that continues nothing
 starts a new patch. Non-planar surfaces are kept as they are or dropped
 (``nonplanar``); the volumetric path for them is `rangesurf.merge.tsdf`.
+Between frames the model can correct a pose by its planes (`align`), remove
+cells a frame sees through (`carve`) and fold fragments that a larger patch
+has grown over into it (`fold_fragments`), so that it grows with the area
+seen rather than with time.
 
 The model also keeps the trajectory and a per-frame merge history, and
 saves itself atomically (`save`, `load`), so that a run can resume from
