@@ -158,7 +158,7 @@ def main() -> None:
         f"{' --sway drifting' if sway == 'drifting' else ''}`.", "",
         f"{n_frames} SR-3000 frames of the arena, default pipeline, drifting odometry; "
         + ("the robot patrols the loop, its sway repeating every lap (three per lap), so after the first lap "
-           f"({round(scene.trajectory.lap_length / min(scene.trajectory.speed / sensor.frame_rate, scene.trajectory.max_step))} "
+           f"({lap_frames} "
            "frames) it sees nothing new; " if sway == "lap" else
            "the scene's default trajectory, whose sway does not repeat with the lap, so new bits of the arena come "
            "into view for thousands of frames; ") +
