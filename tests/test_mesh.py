@@ -7,6 +7,7 @@ from rangesurf import simulate
 from rangesurf.frame import get_sensor
 from rangesurf.mesh import Surface, boundary_loops, triangulate_in_plane, triangulate_segments
 from rangesurf.segment import Segmentation, segment_frame
+from rangesurf.segment.evaluate import truth_segmentation
 
 SR3000 = get_sensor("sr3000")
 RAYS = SR3000.projection.directions(*SR3000.shape)
@@ -84,16 +85,18 @@ def test_simulated_frame_meshes_every_segment_without_steps():
     result = segment_frame(frames[0])
     surfaces = triangulate_segments(result.points, result.segmentation)
     assert len(surfaces) >= result.segmentation.n_segments - 1
+    # True planes; grazing (> 80 degrees), mixed and spike pixels are 0.
+    truth = truth_segmentation(truths[0], frames[0].rays).labels
     for surface in surfaces:
         label = surface.segment
         assert (result.segmentation.labels[surface.pixels[:, 0], surface.pixels[:, 1]] == label).all()
         offsets = surface.vertices @ surface.plane[:3] + surface.plane[3]
         assert np.abs(offsets).max() < 0.2  # vertices near their plane (denoised points)
-        # Most of the segment's pixels are vertices, unless it is seen almost edge-on (a box top at
-        # eye level), where triangles are dropped as steps.
-        rays = frames[0].rays[surface.pixels[:, 0], surface.pixels[:, 1]]
-        incidence = np.degrees(np.arccos(np.median(np.abs(rays @ surface.plane[:3]))))
-        if incidence < 80:
+        # Most of the segment's pixels are vertices if it is mostly one true plane. Not so where it holds
+        # surface seen almost edge-on (a box top at eye level), whose triangles are dropped as steps:
+        # seed 2 has a 230-pixel segment of several surfaces near a box's grazing top.
+        on_truth = truth[result.segmentation.labels == label]
+        if np.bincount(on_truth[on_truth > 0]).max(initial=0) > 0.5 * on_truth.size:
             assert surface.n_vertices >= 0.9 * result.segmentation.sizes[label]
 
 

@@ -23,9 +23,11 @@ class Segmentation:
         belongs to no surface (no return, a depth edge, noise, or a segment
         too small to keep).
     planes : (K + 1, 4) float64
-        ``(nx, ny, nz, d)`` of each segment's total-least-squares plane in the
-        sensor frame: ``n . p + d = 0``, unit ``n`` facing the sensor
-        (``d >= 0``). Row 0 is NaN.
+        ``(nx, ny, nz, d)`` of each segment's plane in the sensor frame:
+        ``n . p + d = 0``, unit ``n`` facing the sensor (``d >= 0``). Region
+        growing fits it along the rays, where range noise lies
+        (`rangesurf._planefit.ray_planes_kernel`); the N x D clustering by
+        total least squares. Row 0 is NaN.
     residuals : (K + 1,) float64
         Root-mean-square point-to-plane distance of each segment's points
         (metres); the patch-fit uncertainty (level UL2). Row 0 is NaN.
@@ -66,18 +68,18 @@ class Segmentation:
         if lookup is None:
             lookup = np.arange(len(moments), dtype=np.int32)
         labels, planes, residuals, sizes = _from_moments_kernel(
-            np.ascontiguousarray(labels), moments, fit, fit_moments is not None, np.ascontiguousarray(lookup, dtype=np.int32),
+            np.ascontiguousarray(labels), moments, planes_kernel(fit)[0], np.ascontiguousarray(lookup, dtype=np.int32),
             unlabelled,
         )
         return cls(labels=labels, planes=planes, residuals=residuals, sizes=sizes)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _from_moments_kernel(labels, moments, fit, refit, lookup, unlabelled):  # pragma: no cover - compiled
+def _from_moments_kernel(labels, moments, fitted, lookup, unlabelled):  # pragma: no cover - compiled
     """`Segmentation.from_moments` in one compiled call (at 176x144 its NumPy steps cost as much as a kernel pass).
 
-    ``refit``: the planes come from ``fit`` and the residuals from ``moments``
-    about them; otherwise both from ``fit`` (which is ``moments``).
+    ``fitted`` holds a plane per row of ``moments``; the residuals are every
+    point's, about that plane.
     """
     counts = moments[1:, 0]
     keep = np.flatnonzero(counts > 0)
@@ -85,23 +87,17 @@ def _from_moments_kernel(labels, moments, fit, refit, lookup, unlabelled):  # pr
     keep = keep[np.argsort(-counts[keep], kind="mergesort")]
     kept = keep.size
     renumber = np.zeros(moments.shape[0], np.int32)
-    fit_rows = np.empty((kept, 10))
     all_rows = np.empty((kept, 10))
+    planes = np.full((kept + 1, 4), np.nan)
     sizes = np.empty(kept + 1, np.int64)
     sizes[0] = unlabelled
     for r in range(kept):
         renumber[keep[r] + 1] = r + 1
-        fit_rows[r] = fit[keep[r] + 1]
+        planes[r + 1] = fitted[keep[r] + 1]
         all_rows[r] = moments[keep[r] + 1]
         sizes[r + 1] = np.int64(counts[keep[r]])
-    planes = np.full((kept + 1, 4), np.nan)
     residuals = np.full(kept + 1, np.nan)
-    fitted, rms = planes_kernel(fit_rows)
-    if refit:
-        # The residual is every point's, about the plane fitted to some of them.
-        rms = plane_rms(all_rows, fitted)
-    planes[1:] = fitted
-    residuals[1:] = rms
+    residuals[1:] = plane_rms(all_rows, planes[1:])
     # Label k of the image is segment lookup[k], which is renumbered: one mapping of the image.
     composed = np.empty(lookup.size, np.int32)
     for k in range(lookup.size):

@@ -48,7 +48,7 @@ from numpy.typing import ArrayLike
 
 from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf._grid import point_ranges, ranges
-from rangesurf._planefit import add_point, plane_eigen, planes_kernel
+from rangesurf._planefit import add_point, plane_eigen, plane_rms, planes_kernel, ray_planes_kernel, ray_weight
 from rangesurf.segment._segmentation import Segmentation, _from_moments_kernel, _relabel_kernel
 
 __all__ = ["grow_regions", "refine_upsampled"]
@@ -211,8 +211,6 @@ def _grow_steps(points, normals, sigma, distance, valid, distance_sigmas, cos_ma
     planes, _ = planes_kernel(moments)
     free_rows, free_cols = _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, depth_jump)
     planes, _ = planes_kernel(moments)
-    # Planes are fitted to what growing found (the core), not to the outline pixels absorbed below.
-    core, core_moments = labels.copy(), moments.copy()
     free_rows, free_cols = _absorb_kernel(
         points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, _ABSORB_SWEEPS
     )
@@ -222,7 +220,7 @@ def _grow_steps(points, normals, sigma, distance, valid, distance_sigmas, cos_ma
     lookup = np.arange(moments.shape[0]).astype(np.int32)
     if merge:
         lookup, moments = _merge_coplanar(pairs, moments, cos_max_angle)
-        core_moments, shapes = _sum_into(core_moments, lookup), _sum_into(shapes, lookup)
+        shapes = _sum_into(shapes, lookup)
         pairs = _merged_pairs(pairs, lookup)
     planes, _ = planes_kernel(moments)
     bevels = _bevel_kernel(pairs, shapes, planes, _BEVEL_WIDTH, _BEVEL_SLACK)
@@ -232,11 +230,10 @@ def _grow_steps(points, normals, sigma, distance, valid, distance_sigmas, cos_ma
         for bevel in bevels:
             dissolved[bevel] = True
             moments[bevel] = 0.0
-            core_moments[bevel] = 0.0
         for label in range(lookup.size):
             if dissolved[lookup[label]]:
                 lookup[label] = 0
-    fit = _interior_moments(points, core, lookup, core_moments)
+    fitted = _interior_planes(points, sigma, labels, lookup, moments)
     if bevels.size:
         # The bevels' pixels are free again, for their neighbours to absorb.
         labels = _relabel_kernel(labels.reshape(labels.size), lookup).reshape(labels.shape)
@@ -246,7 +243,7 @@ def _grow_steps(points, normals, sigma, distance, valid, distance_sigmas, cos_ma
         free_rows, free_cols = _absorb_kernel(
             points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, _ABSORB_SWEEPS
         )
-    return _from_moments_kernel(labels, moments, fit, True, lookup, free_rows.size)
+    return _from_moments_kernel(labels, moments, fitted, lookup, free_rows.size)
 
 
 def refine_upsampled(
@@ -318,14 +315,13 @@ def _refine_steps(points, distance, valid, sigma, coarse_labels, coarse_planes, 
     """The steps of `_refine_upsampled` in one compiled call; the parts of a `Segmentation`."""
     labels, moments = _upsampled_labels(points, valid, sigma, coarse_labels, factor, coarse_planes, distance_sigmas)
     free_rows, free_cols = _refine_boundaries(points, distance, sigma, valid, labels, coarse_planes, moments, depth_jump)
-    core, core_moments = labels.copy(), moments.copy()
     planes, _ = planes_kernel(moments)
     free_rows, free_cols = _absorb_kernel(
         points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, _ABSORB_SWEEPS + factor
     )
     identity = np.arange(moments.shape[0]).astype(np.int32)
-    fit = _interior_moments(points, core, identity, core_moments)
-    return _from_moments_kernel(labels, moments, fit, True, identity, free_rows.size)
+    fitted = _interior_planes(points, sigma, labels, identity, moments)
+    return _from_moments_kernel(labels, moments, fitted, identity, free_rows.size)
 
 
 # --------------------------------------------------------------------------
@@ -369,15 +365,19 @@ def _merge_coplanar(pairs, moments, cos_max_angle):  # pragma: no cover - compil
 
 
 @numba.njit(**_JIT)
-def _interior_moments(points, labels, lookup, moments):  # pragma: no cover - compiled
-    """Moments of each segment's interior (2 pixels in from its outline; the image border does not count).
+def _interior_planes(points, sigma, labels, lookup, moments):  # pragma: no cover - compiled
+    """Plane of each segment's interior (2 pixels in from its outline; the image border does not count), fitted along the rays.
 
     ``labels`` are mapped through ``lookup`` first; ``moments`` are those of
-    each segment's pixels. The outline is where a segment meets another at a
-    crease, and smoothing rounds creases: fitting the plane to the interior
-    keeps that bevel out of it. Segments with too small an interior keep all
-    their points. Outline and outliers are the few pixels: their moments are
-    summed and taken off, rather than all the rest summed again.
+    each segment's pixels; returns a plane per row of ``moments``. The
+    outline is where a segment meets another at a crease, and smoothing
+    rounds creases: fitting the plane to the interior keeps that bevel out
+    of it. Segments with too small an interior keep all their points. The
+    fit is `ray_planes_kernel`'s, weighted by each pixel's range noise
+    ``sigma``: a total least-squares fit of raw SR-3000 segments is tilted
+    3-4 degrees toward the rays. One trimming pass then leaves out the
+    points more than ``_TRIM_RMS`` residual RMS off the plane (a rounded
+    crease, a stray pixel).
     """
     labels, interior, outline = _interior_kernel(points, labels, lookup, moments.shape[0])
     fit = moments - outline
@@ -387,14 +387,27 @@ def _interior_moments(points, labels, lookup, moments):  # pragma: no cover - co
         whole[label] = fit[label, 0] < max(float(_MIN_INTERIOR), _MIN_INTERIOR_FRACTION * moments[label, 0])
         if whole[label]:
             fit[label] = moments[label]
-    # One trimming pass: points more than _TRIM_RMS residual RMS off the plane (a rounded crease,
-    # a stray pixel) leave the fit.
-    planes, rms = planes_kernel(fit)
-    refit = fit - _outlier_moments(points, labels, interior, whole, planes, rms)
+    # Where the rays give no plane (too few points, or all on one ray), the total least-squares one.
+    fallback, _ = planes_kernel(fit)
+    unbounded = np.full(moments.shape[0], math.inf)
+    weighted, _ = _ray_moments(points, sigma, labels, interior, whole, fallback, unbounded)
+    planes = _or_fallback(ray_planes_kernel(weighted), fallback)
+    limits = _TRIM_RMS * plane_rms(fit, planes)
+    trimmed, kept = _ray_moments(points, sigma, labels, interior, whole, planes, limits)
+    refit = _or_fallback(ray_planes_kernel(trimmed), planes)
     for label in range(moments.shape[0]):
-        if refit[label, 0] >= max(3.0, 0.5 * fit[label, 0]):
-            fit[label] = refit[label]
-    return fit
+        if kept[label] >= max(3.0, 0.5 * fit[label, 0]):
+            planes[label] = refit[label]
+    return planes
+
+
+@numba.njit(**_JIT)
+def _or_fallback(planes, fallback):  # pragma: no cover - compiled
+    """``planes``, with the rows that are NaN taken from ``fallback``."""
+    for label in range(planes.shape[0]):
+        if not planes[label, 3] == planes[label, 3]:
+            planes[label] = fallback[label]
+    return planes
 
 
 @numba.njit(**_JIT)
@@ -671,18 +684,18 @@ def _interior_kernel(points, labels, lookup, n_labels):  # pragma: no cover - co
 
 
 @numba.njit(**_JIT)
-def _outlier_moments(points, labels, interior, whole, planes, rms):  # pragma: no cover - compiled
-    """Moments of the fitted pixels (interior, or all of a ``whole`` label) more than ``_TRIM_RMS`` ``rms`` off their plane.
+def _ray_moments(points, sigma, labels, interior, whole, planes, limits):  # pragma: no cover - compiled
+    """`ray_planes_kernel`'s weighted moments of each label's fitted pixels (interior, or all of a ``whole`` label) within ``limits`` of its plane.
 
-    A label without a plane (NaN) has all its fitted pixels off it.
+    Also returns how many pixels each label kept. A label without a plane
+    (NaN) keeps none unless its limit is infinite.
     """
     height, width = labels.shape
-    limits = np.empty(rms.size)
-    for label in range(rms.size):
-        limits[label] = _TRIM_RMS * rms[label] if rms[label] == rms[label] else math.inf
-    moments = np.zeros((planes.shape[0], 10))
+    weighted = np.zeros((planes.shape[0], 10))
+    kept = np.zeros(planes.shape[0])
     current = 0
     run = _EMPTY_RUN
+    count = 0.0
     for i in range(height):
         for j in range(width):
             label = labels[i, j]
@@ -691,14 +704,21 @@ def _outlier_moments(points, labels, interior, whole, planes, rms):  # pragma: n
             x = np.float64(points[i, j, 0])
             y = np.float64(points[i, j, 1])
             z = np.float64(points[i, j, 2])
-            offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
-            if not offset <= limits[label]:
-                if label != current:
-                    _run_flush(moments, current, run)
-                    current, run = label, _EMPTY_RUN
-                run = _run_add(run, x, y, z)
-    _run_flush(moments, current, run)
-    return moments
+            if limits[label] < math.inf:
+                offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
+                if not offset <= limits[label]:
+                    continue
+            if label != current:
+                _run_flush(weighted, current, run)
+                if current > 0:
+                    kept[current] += count
+                current, run, count = label, _EMPTY_RUN, 0.0
+            run = _run_add_weighted(run, x, y, z, ray_weight(x, y, z, sigma[i, j]))
+            count += 1.0
+    _run_flush(weighted, current, run)
+    if current > 0:
+        kept[current] += count
+    return weighted, kept
 
 
 # --------------------------------------------------------------------------
@@ -1111,6 +1131,14 @@ def _run_add(run, x, y, z):  # pragma: no cover - compiled
     """`add_point` on a run of moments held as a tuple (in registers, not memory)."""
     return (run[0] + 1.0, run[1] + x, run[2] + y, run[3] + z, run[4] + x * x, run[5] + x * y,
             run[6] + x * z, run[7] + y * y, run[8] + y * z, run[9] + z * z)
+
+
+@numba.njit(**_JIT, inline="always")
+def _run_add_weighted(run, x, y, z, w):  # pragma: no cover - compiled
+    """`_run_add` with the point weighted by ``w`` (every sum, the count too)."""
+    wx, wy, wz = w * x, w * y, w * z
+    return (run[0] + w, run[1] + wx, run[2] + wy, run[3] + wz, run[4] + wx * x, run[5] + wx * y,
+            run[6] + wx * z, run[7] + wy * y, run[8] + wy * z, run[9] + wz * z)
 
 
 @numba.njit(**_JIT, inline="always")
