@@ -379,7 +379,8 @@ def _interior_planes(points, sigma, labels, lookup, moments):  # pragma: no cove
     points more than ``_TRIM_RMS`` residual RMS off the plane (a rounded
     crease, a stray pixel).
     """
-    labels, interior, outline = _interior_kernel(points, labels, lookup, moments.shape[0])
+    labels, interior = _interior_kernel(labels, lookup)
+    outline, weighted, outline_weighted = _outline_and_weighted_moments(points, sigma, labels, interior, moments.shape[0])
     fit = moments - outline
     # Segments with too small an interior are fitted whole.
     whole = np.empty(moments.shape[0], np.bool_)
@@ -387,16 +388,18 @@ def _interior_planes(points, sigma, labels, lookup, moments):  # pragma: no cove
         whole[label] = fit[label, 0] < max(float(_MIN_INTERIOR), _MIN_INTERIOR_FRACTION * moments[label, 0])
         if whole[label]:
             fit[label] = moments[label]
+            weighted[label] += outline_weighted[label]
     # Where the rays give no plane (too few points, or all on one ray), the total least-squares one.
     fallback, _ = planes_kernel(fit)
-    unbounded = np.full(moments.shape[0], math.inf)
-    weighted, _ = _ray_moments(points, sigma, labels, interior, whole, fallback, unbounded)
     planes = _or_fallback(ray_planes_kernel(weighted), fallback)
     limits = _TRIM_RMS * plane_rms(fit, planes)
-    trimmed, kept = _ray_moments(points, sigma, labels, interior, whole, planes, limits)
-    refit = _or_fallback(ray_planes_kernel(trimmed), planes)
     for label in range(moments.shape[0]):
-        if kept[label] >= max(3.0, 0.5 * fit[label, 0]):
+        if not limits[label] == limits[label]:
+            limits[label] = math.inf  # no plane at all: nothing to trim
+    outliers, off = _outlier_moments(points, sigma, labels, interior, whole, planes, limits)
+    refit = _or_fallback(ray_planes_kernel(weighted - outliers), planes)
+    for label in range(moments.shape[0]):
+        if fit[label, 0] - off[label] >= max(3.0, 0.5 * fit[label, 0]):
             planes[label] = refit[label]
     return planes
 
@@ -630,8 +633,8 @@ def _angle_between(planes, a, b):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _interior_kernel(points, labels, lookup, n_labels):  # pragma: no cover - compiled
-    """``lookup[labels]``, its interior, and the point moments (n_labels, 10) of each label's pixels outside it.
+def _interior_kernel(labels, lookup):  # pragma: no cover - compiled
+    """``lookup[labels]`` and its interior.
 
     A pixel is interior when its label (> 0) fills the window of
     ``_INTERIOR_MARGIN`` pixels around it, clipped by the image border (as a
@@ -680,45 +683,80 @@ def _interior_kernel(points, labels, lookup, n_labels):  # pragma: no cover - co
             for offset in range(2 * margin):
                 spoiled |= down_near[i + offset, j]
             interior[i, j] = (mapped[i, j] > 0) & ~spoiled
-    return mapped, interior, _masked_moments(points, mapped, ~interior, n_labels)
+    return mapped, interior
 
 
 @numba.njit(**_JIT)
-def _ray_moments(points, sigma, labels, interior, whole, planes, limits):  # pragma: no cover - compiled
-    """`ray_planes_kernel`'s weighted moments of each label's fitted pixels (interior, or all of a ``whole`` label) within ``limits`` of its plane.
+def _outline_and_weighted_moments(points, sigma, labels, interior, n_labels):  # pragma: no cover - compiled
+    """In one pass: each label's point moments outside its ``interior``, and `ray_planes_kernel`'s weighted moments inside it and outside it.
 
-    Also returns how many pixels each label kept. A label without a plane
-    (NaN) keeps none unless its limit is infinite.
+    The outline is the few pixels: its point moments are taken off the
+    segment's, rather than the interior's summed again.
+    """
+    height, width = labels.shape
+    outline = np.zeros((n_labels, 10))
+    inside_weighted = np.zeros((n_labels, 10))
+    outside_weighted = np.zeros((n_labels, 10))
+    current = 0
+    inside = outside = outside_plain = _EMPTY_RUN
+    for i in range(height):
+        for j in range(width):
+            label = labels[i, j]
+            if label <= 0:
+                continue
+            if label != current:
+                _run_flush(outline, current, outside_plain)
+                _run_flush(inside_weighted, current, inside)
+                _run_flush(outside_weighted, current, outside)
+                current, inside, outside, outside_plain = label, _EMPTY_RUN, _EMPTY_RUN, _EMPTY_RUN
+            x = np.float64(points[i, j, 0])
+            y = np.float64(points[i, j, 1])
+            z = np.float64(points[i, j, 2])
+            w = ray_weight(x, y, z, sigma[i, j])
+            if interior[i, j]:
+                inside = _run_add_weighted(inside, x, y, z, w)
+            else:
+                outside = _run_add_weighted(outside, x, y, z, w)
+                outside_plain = _run_add(outside_plain, x, y, z)
+    _run_flush(outline, current, outside_plain)
+    _run_flush(inside_weighted, current, inside)
+    _run_flush(outside_weighted, current, outside)
+    return outline, inside_weighted, outside_weighted
+
+
+@numba.njit(**_JIT)
+def _outlier_moments(points, sigma, labels, interior, whole, planes, limits):  # pragma: no cover - compiled
+    """`ray_planes_kernel`'s weighted moments of each label's fitted pixels (interior, or all of a ``whole`` label) beyond ``limits`` of its plane, and their count.
+
+    A label without a plane (NaN) has all its fitted pixels beyond it unless
+    its limit is infinite. These are the few pixels (a rounded crease, a
+    stray pixel) to take off the sums of all.
     """
     height, width = labels.shape
     weighted = np.zeros((planes.shape[0], 10))
-    kept = np.zeros(planes.shape[0])
+    counts = np.zeros(planes.shape[0])
     current = 0
     run = _EMPTY_RUN
     count = 0.0
     for i in range(height):
         for j in range(width):
             label = labels[i, j]
-            if label <= 0 or not (whole[label] or interior[i, j]):
+            if label <= 0 or not (whole[label] or interior[i, j]) or limits[label] == math.inf:
                 continue
             x = np.float64(points[i, j, 0])
             y = np.float64(points[i, j, 1])
             z = np.float64(points[i, j, 2])
-            if limits[label] < math.inf:
-                offset = abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3])
-                if not offset <= limits[label]:
-                    continue
+            if abs(planes[label, 0] * x + planes[label, 1] * y + planes[label, 2] * z + planes[label, 3]) <= limits[label]:
+                continue
             if label != current:
                 _run_flush(weighted, current, run)
-                if current > 0:
-                    kept[current] += count
+                counts[current] += count
                 current, run, count = label, _EMPTY_RUN, 0.0
             run = _run_add_weighted(run, x, y, z, ray_weight(x, y, z, sigma[i, j]))
             count += 1.0
     _run_flush(weighted, current, run)
-    if current > 0:
-        kept[current] += count
-    return weighted, kept
+    counts[current] += count
+    return weighted, counts
 
 
 # --------------------------------------------------------------------------
