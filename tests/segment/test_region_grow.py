@@ -231,14 +231,16 @@ def test_refine_upsampled_checks_its_inputs():
 # --------------------------------------------------------------------------
 
 
-def moments_reference(points, labels, n_labels):
-    """(n_labels, 10) sums n, x, y, z, xx, xy, xz, yy, yz, zz per label > 0."""
+def moments_reference(points, labels, n_labels, weights=None):
+    """(n_labels, 10) sums n, x, y, z, xx, xy, xz, yy, yz, zz per label > 0, each point weighted by ``weights``."""
     moments = np.zeros((n_labels, 10))
     p = points.astype(np.float64)
+    w = np.ones(labels.shape) if weights is None else weights
     for label in range(1, n_labels):
         x, y, z = p[labels == label].T
-        moments[label] = [x.size, x.sum(), y.sum(), z.sum(), (x * x).sum(), (x * y).sum(), (x * z).sum(),
-                          (y * y).sum(), (y * z).sum(), (z * z).sum()]
+        v = w[labels == label]
+        moments[label] = [v.sum(), (v * x).sum(), (v * y).sum(), (v * z).sum(), (v * x * x).sum(), (v * x * y).sum(),
+                          (v * x * z).sum(), (v * y * y).sum(), (v * y * z).sum(), (v * z * z).sum()]
     return moments
 
 
@@ -336,13 +338,19 @@ def test_interior_kernel_matches_minimum_and_maximum_filters():
     # Scattered one-pixel holes and a label (3) that the lookup merges into another (2).
     labels[np.random.default_rng(13).random(labels.shape) < 0.01] = 0
     lookup = np.array([0, 1, 2, 2], np.int32)
-    mapped, interior, outline = region_grow._interior_kernel(points, labels, lookup, 4)
+    mapped, interior = region_grow._interior_kernel(labels, lookup)
     assert np.array_equal(mapped, lookup[labels])
     low = ndimage.minimum_filter(mapped, size=5, mode="nearest")
     high = ndimage.maximum_filter(mapped, size=5, mode="nearest")
     assert np.array_equal(interior, (low == high) & (mapped > 0))
     assert 0 < interior.sum() < (mapped > 0).sum()
+    # The sums the plane fit takes: the outline's point moments, and the ray-weighted moments in and out.
+    sigma = np.random.default_rng(14).uniform(0.005, 0.02, labels.shape)
+    outline, inside, outside = region_grow._outline_and_weighted_moments(points, sigma, mapped, interior, 4)
+    weights = (points.astype(np.float64) ** 2).sum(axis=2) / sigma**2
     assert np.allclose(outline, moments_reference(points, np.where(interior, 0, mapped), 4), rtol=1e-9, atol=1e-9)
+    assert np.allclose(inside, moments_reference(points, np.where(interior, mapped, 0), 4, weights), rtol=1e-9)
+    assert np.allclose(outside, moments_reference(points, np.where(interior, 0, mapped), 4, weights), rtol=1e-9)
 
 
 def test_adjacency_matches_numpy_reference():
