@@ -9,8 +9,9 @@ along its normal:
   data shows it (a planar segment's fit residual against the noise the
   model predicts for it); for a fused vertex, the noise of the
   inverse-variance weighted mean of its observations,
-  ``1 / sum(1 / sigma_i^2)``, scaled by how much those observations really
-  scatter against the model's prediction once several are in
+  ``1 / sum(1 / sigma_i^2)``, raised where those observations scatter more
+  than the model predicts once several are in, never lowered where they
+  scatter less: an error every observation shares does not scatter
   (`rangesurf.merge.planar`). That shrinks with every frame fused, so
   what frames do not average must not reach the vertices: denoising's own
   systematic error (diffusion lengthens a plane's convex range image and

@@ -44,6 +44,27 @@ def test_repeated_views_average_the_noise_and_add_no_vertex():
     assert np.median(surface.uncertainty["UL3"]) < sigma / 4
 
 
+def test_ul1_follows_the_scatter_up_but_not_down():
+    """Views that scatter twice as much as their sigma says raise UL1 about twice; views that err alike do not
+    lower it.
+
+    Sixteen views with one and the same noise (an error every frame shares, like a denoising bias) scatter
+    not at all, and their fused heights are as far off as one view: UL1 stays at the sensor model's
+    sigma / 4 rather than shrinking toward zero with the scatter.
+    """
+    sigma = 0.005
+    noisy, shared = GlobalModel(cell_size=0.02), GlobalModel(cell_size=0.02)
+    for seed in range(16):
+        noisy.add_frame([wall(2 * sigma, seed, sigma=sigma)], np.eye(4))
+        shared.add_frame([wall(sigma, 0, sigma=sigma)], np.eye(4))
+    error, surface = heights(noisy)
+    assert np.std(error) == pytest.approx(2 * sigma / 4, rel=0.15)
+    assert np.median(surface.uncertainty["UL1"]) == pytest.approx(2 * sigma / 4, rel=0.2)
+    error, surface = heights(shared)
+    assert np.std(error) == pytest.approx(sigma, rel=0.15)
+    assert np.allclose(surface.uncertainty["UL1"], sigma / 4, rtol=1e-3)
+
+
 def test_disagreeing_views_raise_ul3():
     """Two exact views 3 cm apart (a registration error): the fused wall sits between and UL3 says 1.5 cm."""
     model = GlobalModel(cell_size=0.02, max_plane_distance=0.1)

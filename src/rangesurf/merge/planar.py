@@ -527,12 +527,18 @@ class PlanarPatch:
         noise_mean = self.sums["noise"] / weight
         # Sensor noise of the fused height: the variance of an inverse-variance weighted mean of
         # independent observations, 1 / sum(1 / sigma_i^2), with the sigma_i the sensor model's (after
-        # denoising) -- scaled by how much the observations of this cell actually scatter against what
-        # the model predicts for them, once several are in: the model's prediction counts as
-        # _PRIOR_OBSERVATIONS observations, the measured spread as the rest.
-        seen = np.maximum(self.sums["count"] - 1.0, 0.0)
-        scatter = (_PRIOR_OBSERVATIONS * noise_mean + seen * spread) / (_PRIOR_OBSERVATIONS + seen)
-        ul1 = np.sqrt(scatter / np.maximum(noise_mean, 1e-30) / self.sums["information"])
+        # denoising) -- raised where the observations of this cell scatter more than the model predicts
+        # for them: the model's prediction counts as _PRIOR_OBSERVATIONS observations, the measured
+        # spread (unbiased: n / (n - 1) times the weighted spread, n - 1 degrees of freedom) as the rest.
+        # Never lowered: a small scatter shows the random part of the error is small, not the part every
+        # observation shares, which averaging keeps (diffusion's leftover bias: on the simulated SR-3000
+        # arena, cells fused from 128 frames or more scatter 1.9 mm (median), lie 0.65 mm RMS off the true
+        # plane, and a UL1 scaled down to their scatter held 58 % of those errors within +-2 UL1; this
+        # rule 97 %).
+        count = self.sums["count"]
+        scatter = (_PRIOR_OBSERVATIONS * noise_mean + count * spread) / (_PRIOR_OBSERVATIONS + np.maximum(count - 1.0, 0.0))
+        excess = np.maximum(scatter / np.maximum(noise_mean, 1e-30), 1.0)
+        ul1 = np.sqrt(excess / self.sums["information"])
         a, b, c = self.fitted_plane()
         # Patch fit: a fused vertex off its patch's plane by more than its noise explains shows local
         # model error there (a rounded crease, a leftover flying pixel); half that distance counts as
