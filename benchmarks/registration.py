@@ -5,7 +5,8 @@ Run: ``.venv/bin/python benchmarks/registration.py``; writes
 (SR-3000 176x144 and Kinect 640x480, all noise effects on, denoised), each
 pair registered from a noisy odometry guess (`simulate.noisy_odometry`: 5 % of
 the step and 0.5 degrees per axis off) by rangesurf `icp` (projective
-point-to-plane), OpenCV contrib ``cv2.rgbd.ICPOdometry`` (depth only, its
+point-to-plane, residuals weighted by both frames' range noise, as the
+pipeline registers), OpenCV contrib ``cv2.rgbd.ICPOdometry`` (depth only, its
 defaults) and Open3D ``registration_icp`` (point-to-plane, k-d tree, 2 cm
 correspondences). One core each; errors against the simulator's true motion.
 """
@@ -32,10 +33,11 @@ PAIRS = 25
 
 
 def prepare(frame):
+    """Denoised points, their normals and range sigmas (the pipeline's, at the denoised range)."""
     smooth = denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)
     points = (frame.rays * smooth[..., None]).astype(np.float32)
     sigma = frame.sensor.range_sigma(np.where(np.isfinite(smooth), smooth, 1.0), frame.intensity)
-    return points, estimate_normals(points, projection=frame.sensor.projection, range_sigma=sigma)
+    return points, estimate_normals(points, projection=frame.sensor.projection, range_sigma=sigma), sigma
 
 
 def main() -> None:
@@ -49,7 +51,8 @@ def main() -> None:
         f"{PAIRS} consecutive pairs per sensor, from a noisy odometry guess (5 % of the step, 0.5 deg per axis); errors "
         "(rotation, translation at the sensor) against the true motion, RMS and worst over the pairs; times are medians, and the ratio is "
         "peer time / rangesurf time, alternating (> 1: rangesurf faster). Inputs: the denoised frames; OpenCV gets "
-        "their depth (z), Open3D their points and rangesurf's normals of the target.",
+        "their depth (z), Open3D their points and rangesurf's normals of the target, rangesurf also both frames' range "
+        "sigmas.",
         "",
         "| sensor | method | rotation RMS / worst (deg) | translation RMS / worst (mm) | ms per pair | speed ratio |",
         "|---|---|---:|---:|---:|---:|",
@@ -63,13 +66,13 @@ def main() -> None:
         prepared = [prepare(frame) for frame in frames]
         rows = {"rangesurf icp": [], "OpenCV ICPOdometry": [], "Open3D registration_icp": []}
         for k in range(PAIRS):
-            (target_points, target_normals), (source_points, _) = prepared[k], prepared[k + 1]
+            (target_points, target_normals, target_sigma), (source_points, _, source_sigma) = prepared[k], prepared[k + 1]
             truth = np.linalg.inv(truths[k].T_world_sensor) @ truths[k + 1].T_world_sensor
             guess = np.linalg.inv(odometry_poses[k]) @ odometry_poses[k + 1]
 
             def ours():
-                return icp(source_points, target_points, target_normals, initial=guess,
-                           target_projection=projection).T_target_source
+                return icp(source_points, target_points, target_normals, initial=guess, target_projection=projection,
+                           source_sigma=source_sigma, target_sigma=target_sigma).T_target_source
 
             depth_t = np.nan_to_num(target_points[..., 2]).astype(np.float32)
             depth_s = np.nan_to_num(source_points[..., 2]).astype(np.float32)

@@ -135,6 +135,116 @@ def test_bad_input_is_refused():
         icp(points, points, normals, max_iterations=0)
 
 
+def _near_and_far_pair(seed):
+    """A Kinect pair of a box corner 1.3 m away before walls 3-6 m away: the far points' range noise is 20-100 times the near ones'."""
+    from rangesurf.simulate import Polygon, Scene, SimulationNoise, look_at, simulate_frame
+
+    def rectangle(surface_id, corners):
+        return Polygon(surface_id, np.asarray(corners, dtype=float), 0.6)
+
+    box = [(1.3, 0.0), (1.65, 0.35), (2.0, 0.0), (1.65, -0.35)]  # a corner toward the sensor
+    scene = Scene("near and far", (
+        rectangle(1, [(0, -3, 0), (6, -3, 0), (6, 3, 0), (0, 3, 0)]),
+        rectangle(2, [(6, -3, 0), (6, 3, 0), (6, 3, 3), (6, -3, 3)]),
+        rectangle(3, [(0, 3, 0), (6, 3, 0), (6, 3, 3), (0, 3, 3)]),
+        rectangle(4, [(0, -3, 0), (6, -3, 0), (6, -3, 3), (0, -3, 3)]),
+        rectangle(5, [(*box[0], 0), (*box[1], 0), (*box[1], 0.7), (*box[0], 0.7)]),
+        rectangle(6, [(*box[0], 0), (*box[3], 0), (*box[3], 0.7), (*box[0], 0.7)]),
+        rectangle(7, [(x, y, 0.7) for x, y in box]),
+    ))
+    motion = np.eye(4)
+    motion[:3, :3] = Rotation.from_euler("xyz", [0.5, -1.0, 0.8], degrees=True).as_matrix()
+    motion[:3, 3] = (0.02, -0.01, 0.015)
+    first = look_at((0.0, 0.1, 1.1), (2.0, 0.0, 0.3))
+    rng = np.random.default_rng(seed)
+    noise = SimulationNoise(mixed_pixels=False, salt_and_pepper=0.0)
+    frames = [simulate_frame(scene, "kinect", pose, noise=noise, rng=rng)[0] for pose in (first, first @ motion)]
+    sigmas = [frame.sensor.range_sigma(np.where(np.isfinite(frame.range), frame.range, 1.0)) for frame in frames]
+    return frames, sigmas, motion
+
+
+def test_range_noise_weights_lower_the_error_where_far_points_are_noisy():
+    """Raw Kinect frames, noise growing with range squared: weighting by it beats counting every residual alike."""
+    unweighted, weighted = [], []
+    for seed in range(3):
+        (target, source), (target_sigma, source_sigma), motion = _near_and_far_pair(seed)
+        projection = target.sensor.projection
+        normals = estimate_normals(target.points, projection=projection, range_sigma=target_sigma)
+        plain = icp(source.points, target.points, normals, target_projection=projection)
+        result = icp(source.points, target.points, normals, target_projection=projection, source_sigma=source_sigma,
+                     target_sigma=target_sigma)
+        unweighted.append(pose_error(plain.T_target_source, motion))
+        weighted.append(pose_error(result.T_target_source, motion))
+        # The covariance keeps its convention: rmse^2 times the inverse information.
+        assert np.allclose(result.covariance, result.rmse**2 * np.linalg.inv(result.information), rtol=1e-6)
+    unweighted, weighted = np.array(unweighted), np.array(weighted)
+    assert (weighted[:, 1] < unweighted[:, 1]).all()
+    rms = np.sqrt(np.mean(unweighted**2, axis=0)), np.sqrt(np.mean(weighted**2, axis=0))
+    assert rms[1][1] < 0.6 * rms[0][1] and rms[1][0] < rms[0][0]
+
+
+def test_bad_range_sigma_is_refused():
+    frames, sigmas, _ = _near_and_far_pair(0)
+    target, source = frames
+    projection = target.sensor.projection
+    normals = estimate_normals(target.points, projection=projection)
+    run = dict(target_projection=projection)
+    with pytest.raises(ValueError, match="source_sigma must have the points' shape"):
+        icp(source.points, target.points, normals, source_sigma=sigmas[1][:, :-1], **run)
+    with pytest.raises(ValueError, match="target_sigma must have the points' shape"):
+        icp(source.points, target.points, normals, target_sigma=0.01, **run)
+    negative = sigmas[0].copy()
+    negative[240, 320] = 0.0 if np.isfinite(target.range[240, 320]) else negative[240, 320]
+    assert np.isfinite(target.range[240, 320])
+    with pytest.raises(ValueError, match="target_sigma must be finite and > 0 wherever there is a point; 1 points"):
+        icp(source.points, target.points, normals, target_sigma=negative, **run)
+    missing = sigmas[1].copy()
+    missing[np.isfinite(source.range)] = np.nan
+    with pytest.raises(ValueError, match="source_sigma must be finite and > 0"):
+        icp(source.points, target.points, normals, source_sigma=missing, **run)
+    # Where there is no point, the sigma is not looked at.
+    ignored = sigmas[1].copy()
+    ignored[~np.isfinite(source.range)] = np.nan
+    icp(source.points, target.points, normals, source_sigma=ignored, **run)
+    with pytest.raises(ValueError, match="point_to_plane"):
+        icp(source.points, target.points, normals, method="point_to_point", source_sigma=sigmas[1])
+
+
+def test_weighted_paths_agree():
+    """The compiled projective pass and the k-d tree path weigh a pair alike (same variances and normal equations)."""
+    from rangesurf.register import _MIN_INCIDENCE_SQUARED, _Associator, _pair_variances, _source_noise, _target_variance
+
+    (target, source), (target_sigma, source_sigma), motion = _near_and_far_pair(1)
+    projection = target.sensor.projection
+    normals = estimate_normals(target.points, projection=projection, range_sigma=target_sigma).astype(np.float64)
+    points = target.points.astype(np.float64)
+    source_points = source.points.reshape(-1, 3)
+    valid = np.isfinite(source_points).all(axis=1)
+    noise = _source_noise(source_sigma, source.points)
+    variance = _target_variance(target_sigma, points, normals)
+    associate = _Associator(points, normals, projection, variance)
+    information, paired, inliers, rmse, normalized_rmse = associate.projective_quality(
+        source_points[valid], motion, 0.1, np.inf, noise)
+    # The same pairs by NumPy's projective association, their variances by the k-d tree path's function.
+    pairs = associate(source_points[valid], motion, 0.1)
+    u = np.round(projection.fx * pairs.target[:, 0] / pairs.target[:, 2] + projection.cx).astype(int)
+    v = np.round(projection.fy * pairs.target[:, 1] / pairs.target[:, 2] + projection.cy).astype(int)
+    # Which source point each pair holds (the moved points are those of the association, bit for bit).
+    moved = source_points[valid] @ motion[:3, :3].T + motion[:3, 3]
+    index = {row.tobytes(): k for k, row in enumerate(moved)}
+    taken = np.array([index[row.tobytes()] for row in pairs.moved])
+    pairs.variance = _pair_variances(pairs.normals, variance[v, u], pairs.moved - motion[:3, 3], noise[taken],
+                                     _MIN_INCIDENCE_SQUARED)
+    weights = 1.0 / pairs.variance
+    residual = pairs.residuals("point_to_plane")
+    assert paired == inliers == pairs.count > 10_000
+    assert np.allclose(information, pairs.information("point_to_plane", weights), rtol=1e-6, atol=0.0)
+    assert rmse == pytest.approx(np.sqrt(np.mean(residual**2)), rel=1e-9)
+    assert normalized_rmse == pytest.approx(np.sqrt(np.mean(residual**2 * weights)), rel=1e-6)
+    # Far points weigh less: the weights span the noise's range dependence.
+    assert weights.max() > 100 * weights.min()
+
+
 def test_compiled_projective_equations_match_numpy():
     """The compiled pass (pairs buffered and summed in chunks) gives the normal equations of the NumPy path."""
     from rangesurf.register import _TUKEY, _Associator, _tukey
@@ -148,13 +258,13 @@ def test_compiled_projective_equations_match_numpy():
     transform = np.linalg.inv(frames[0].pose) @ frames[1].pose
     scale = 0.01 * _TUKEY
     associate = _Associator(target, normals, projection)
-    information, paired, inliers, rmse = associate.projective_quality(source, transform, 0.1, scale)
+    information, paired, inliers, rmse, normalized_rmse = associate.projective_quality(source, transform, 0.1, scale)
     pairs = associate(source, transform, 0.1)
     residual = pairs.residuals("point_to_plane")
     weights = _tukey(residual, scale)
     assert paired == pairs.count and inliers == np.count_nonzero(weights) > 5000  # several chunks
     assert np.allclose(information, pairs.information("point_to_plane", weights), rtol=1e-9, atol=0.0)
-    assert rmse == pytest.approx(np.sqrt(np.mean(residual[weights > 0] ** 2)), rel=1e-9)
+    assert rmse == pytest.approx(np.sqrt(np.mean(residual[weights > 0] ** 2)), rel=1e-9) and normalized_rmse == rmse
 
 
 @pytest.mark.parametrize("size", [1, 2, 7, 10, 1999, 2000])

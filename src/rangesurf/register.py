@@ -66,6 +66,11 @@ _HALF_SOURCE = 20_000
 _DENSE_SOURCE = 100_000
 # A new keyframe once the share of paired points drops this far below the keyframe's first registration.
 _KEYFRAME_OVERLAP_LOSS = 0.05
+# Floor of (n . u)^2, the squared cosine between a target normal and a line of sight, in the variance of a
+# point-to-plane residual from range noise: towards grazing incidence the range noise along the normal vanishes,
+# but the normal's own error and the pixel's footprint on the surface do not (the floor is reached 80 degrees
+# from the normal).
+_MIN_INCIDENCE_SQUARED = 0.03
 # Smallest residual variance (m^2) trusted when weighing ICP against a motion prior.
 _MIN_RESIDUAL_VARIANCE = 1e-8
 # Squared Mahalanobis distance between ICP's motion and the prior's beyond which ICP is not trusted
@@ -93,7 +98,9 @@ class RegistrationResult:
         Maps source points into the target's frame.
     rmse : float
         Root-mean-square point-to-plane (or point-to-point) residual of the
-        inlier pairs at the end (metres).
+        inlier pairs at the end (metres). With range sigmas the robust test
+        judges residuals against their own sigma, so far, noisy pairs stay
+        inliers and raise it.
     inlier_fraction : float
         Share of the source points paired within the correspondence distance.
     covariance : (6, 6) float64
@@ -111,7 +118,13 @@ class RegistrationResult:
     information : (6, 6) float64
         The robustly weighted Gauss-Newton information matrix ``J^T W J``
         at the end (without the residual variance): ``covariance`` is
-        ``rmse**2`` times its inverse in the constrained directions.
+        ``rmse**2`` times its inverse in the constrained directions. With
+        range sigmas (`icp`'s ``source_sigma``, ``target_sigma``) ``W``
+        also holds every residual's ``1 / sigma_r^2``, and the matrix is
+        scaled by ``(rmse / normalized RMS)^2`` (the normalized residual
+        being ``r / sigma_r``), so that the same relation holds and
+        ``covariance`` is the normalized RMS squared times the inverse of
+        ``J^T W J``.
     """
 
     T_target_source: np.ndarray
@@ -138,6 +151,8 @@ def icp(
     levels: tuple[int, ...] | None = None,
     tolerance: tuple[float, float] = (1e-4, 1e-4),
     min_inliers: int = 50,
+    source_sigma: ArrayLike | None = None,
+    target_sigma: ArrayLike | None = None,
 ) -> RegistrationResult:
     """Align source points to a target surface by iterative closest points.
 
@@ -174,6 +189,20 @@ def icp(
     min_inliers : int
         Fewer pairs than this: an error (the frames do not overlap, or one is
         empty).
+    source_sigma, target_sigma : float arrays, optional
+        Range standard deviation (metres) of every source / target point
+        (``SensorModel.range_sigma`` of the range image the points come
+        from), shaped like the points without their last axis; finite and
+        > 0 wherever a point is valid. With either (point-to-plane only),
+        each residual is weighted by the inverse of its variance from range
+        noise, the sum over the frames given of ``sigma^2 (n . u)^2`` (``u``
+        the point's line of sight, ``(n . u)^2`` at least 0.03), and the
+        robust test runs on the residual over its standard deviation: far,
+        noisy points no longer weigh as much as near ones (simulated
+        denoised Kinect pairs, projective: translation RMS 11-28 % lower,
+        rotation RMS 12-25 % lower, about 30 % more time; SR-3000 pairs: up
+        to 6 % lower; SR-3000 through the k-d tree: no clear change). None
+        (default): all residuals alike.
 
     Returns
     -------
@@ -232,7 +261,13 @@ def icp(
         raise ValueError(f"max_correspondence_distance must be > 0, got {max_correspondence_distance}")
     if max_iterations < 1:
         raise ValueError(f"max_iterations must be >= 1, got {max_iterations}")
-    associate = _Associator(target_array, normals_array, target_projection)
+    fast = method == "point_to_plane" and target_projection is not None
+    weighted = source_sigma is not None or target_sigma is not None
+    if weighted and method != "point_to_plane":
+        raise ValueError("source_sigma and target_sigma weigh point-to-plane residuals: use method='point_to_plane'")
+    source_noise = None if source_sigma is None else _source_noise(source_sigma, np.asarray(source))
+    target_variance = None if target_sigma is None else _target_variance(target_sigma, target_array, normals_array)
+    associate = _Associator(target_array, normals_array, target_projection, target_variance)
 
     if levels is None:
         if len(source_points) >= _DENSE_SOURCE:
@@ -246,7 +281,9 @@ def icp(
     iterations = 0
     converged = False
     scale = None
-    fast = method == "point_to_plane" and target_projection is not None
+    # Residuals over their sigma have no scale in metres: only the correspondence distance bounds them
+    # until the first robust scale.
+    scale_limit = math.inf if weighted else _TUKEY
     for step in levels:
         step = max(int(step), 1)
         sample = source_points[::step]
@@ -255,20 +292,22 @@ def icp(
         distance = max_correspondence_distance * step
         # The robust scale of a pass comes from the previous pass's residuals (one pass per step),
         # carried over from the coarser level.
-        scale = _TUKEY * distance if scale is None else min(scale, _TUKEY * distance)
+        scale = scale_limit * distance if scale is None else min(scale, scale_limit * distance)
         # Coarse levels only need to get close: their tolerance grows with the step.
         rotation_tolerance, translation_tolerance = tolerance[0] * step, tolerance[1] * step
         if fast:
             # Depth camera: the whole level compiled (pairing, normal equations, robust scale, step), with
             # no Python between its iterations.
             transform, scale, taken, converged, paired = associate.projective_level(
-                sample, transform, distance, scale, max_iterations, rotation_tolerance, translation_tolerance, min_inliers
+                sample, transform, distance, scale, max_iterations, rotation_tolerance, translation_tolerance, min_inliers,
+                None if source_noise is None else source_noise[::step],
             )
             iterations += taken
             _require_pairs(paired, distance, min_inliers)
         else:
+            sample_noise = None if source_noise is None else source_noise[::step]
             for _ in range(max_iterations):
-                pairs = associate(sample, transform, distance)
+                pairs = associate(sample, transform, distance, sample_noise)
                 _require_pairs(pairs.count, distance, min_inliers)
                 if method == "point_to_plane":
                     delta = _point_to_plane_step(pairs, distance)
@@ -285,18 +324,25 @@ def icp(
     final_points = source_points[::final_step]
     if fast:
         # The last step's robust scale (its residuals are those of a pose less than a tolerance away).
-        final_scale = min(scale, _TUKEY * max_correspondence_distance)
-        information, paired, inliers, rmse = associate.projective_quality(
-            final_points, transform, max_correspondence_distance, final_scale
+        final_scale = min(scale, scale_limit * max_correspondence_distance)
+        information, paired, inliers, rmse, normalized_rmse = associate.projective_quality(
+            final_points, transform, max_correspondence_distance, final_scale,
+            None if source_noise is None else source_noise[::final_step],
         )
     else:
-        pairs = associate(final_points, transform, max_correspondence_distance)
+        pairs = associate(final_points, transform, max_correspondence_distance,
+                          None if source_noise is None else source_noise[::final_step])
         paired = pairs.count
         residual = pairs.residuals(method)
-        weights = _tukey(residual, _robust_scale(residual, max_correspondence_distance))
+        weights, normalized = pairs.robust_weights(method, max_correspondence_distance)
         information = pairs.information(method, weights)
         inliers = int(np.count_nonzero(weights))
         rmse = float(np.sqrt(np.mean(residual[weights > 0] ** 2))) if inliers else math.nan
+        normalized_rmse = float(np.sqrt(np.mean(normalized[weights > 0] ** 2))) if inliers else math.nan
+    if weighted and normalized_rmse > 0:
+        # J^T W J with W = Tukey / sigma_r^2 has a covariance of (normalized RMS)^2 times its inverse;
+        # rescaled so that, as unweighted, the covariance is rmse^2 times the inverse of the information.
+        information = information * (rmse / normalized_rmse) ** 2
     if paired < min_inliers:
         raise ValueError(f"only {paired} source points are paired at the end (need {min_inliers})")
     information = information * final_step
@@ -527,8 +573,8 @@ class FrameTracker:
         self.keyframe_angle = float(keyframe_angle)
         self.odometry_sigma = (float(odometry_sigma[0]), float(odometry_sigma[1]))
         self.odometry_relative = float(odometry_relative)
-        # The keyframe: points, normals, world pose and its covariance.
-        self._keyframe: tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray] | None = None
+        # The keyframe: points, normals, world pose, its covariance and the points' range sigmas.
+        self._keyframe: tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, np.ndarray | None] | None = None
         self._key_inliers: float | None = None
         self._previous_odometry: np.ndarray | None = None
         self._motion = np.eye(4)
@@ -542,6 +588,7 @@ class FrameTracker:
         *,
         projection: PinholeProjection | None = None,
         odometry: ArrayLike | None = None,
+        range_sigma: ArrayLike | None = None,
     ) -> TrackedPose:
         """Register a frame and return its world pose.
 
@@ -556,13 +603,20 @@ class FrameTracker:
         odometry : (4, 4) array, optional
             The frame's odometry pose (``RangeFrame.pose``); the first
             frame's sets the world frame.
+        range_sigma : float array, optional
+            Range standard deviation of every point (``points``' shape
+            without the last axis; ``SensorModel.range_sigma`` of the range
+            image the points come from). With point-to-plane, ICP weighs its
+            residuals by this frame's and the keyframe's range noise
+            (`icp`'s ``source_sigma``, ``target_sigma``).
         """
         odometry_pose = None if odometry is None else check_rigid_transform(odometry, "odometry")
         points = np.asarray(points)
         normals = None if normals is None else np.asarray(normals)
+        sigma = None if range_sigma is None or self.method != "point_to_plane" else np.asarray(range_sigma)
         if self._keyframe is None:
             self.pose = np.eye(4) if odometry_pose is None else odometry_pose.copy()
-            self._keyframe = (points, normals, self.pose.copy(), self.covariance.copy())
+            self._keyframe = (points, normals, self.pose.copy(), self.covariance.copy(), sigma)
             self._previous_odometry = odometry_pose
             return TrackedPose(self.pose.copy(), self.covariance.copy(), None, "first")
         if odometry_pose is not None and self._previous_odometry is not None:
@@ -572,13 +626,14 @@ class FrameTracker:
             # A constant-velocity guess knows less than odometry does.
             step, prior_name = self._motion, "constant_velocity"
             prior_covariance = _CONSTANT_VELOCITY_SCALE * self.prior_covariance(step)
-        key_points, key_normals, key_pose, key_covariance = self._keyframe
+        key_points, key_normals, key_pose, key_covariance, key_sigma = self._keyframe
         prior = np.linalg.inv(key_pose) @ self.pose @ step
         result = fused = None
         try:
             result = icp(points, key_points, key_normals, initial=prior, method=self.method,
                          target_projection=projection if key_points.ndim == 3 else None,
-                         max_correspondence_distance=self.max_correspondence_distance)
+                         max_correspondence_distance=self.max_correspondence_distance,
+                         source_sigma=sigma, target_sigma=key_sigma)
             fused = self._with_prior(result, prior, prior_covariance)
         except ValueError:
             pass  # no overlap with the keyframe
@@ -605,7 +660,7 @@ class FrameTracker:
             self._key_inliers = result.inlier_fraction
         overlap_lost = result is None or result.inlier_fraction < self._key_inliers - _KEYFRAME_OVERLAP_LOSS
         if overlap_lost or moved >= self.keyframe_distance or turned >= self.keyframe_angle:
-            self._keyframe = (points, normals, pose.copy(), covariance.copy())
+            self._keyframe = (points, normals, pose.copy(), covariance.copy(), sigma)
             self._key_inliers = None
         return TrackedPose(pose.copy(), covariance.copy(), result, prior_name, result is None, step_covariance)
 
@@ -631,15 +686,15 @@ class FrameTracker:
         if covariance.shape != (6, 6) or np.isnan(covariance).any():
             raise ValueError(f"covariance must be a 6x6 matrix without NaN, got shape {covariance.shape}")
         correction = pose @ np.linalg.inv(self.pose)
-        key_points, key_normals, key_pose, _ = self._keyframe
-        self._keyframe = (key_points, key_normals, correction @ key_pose, covariance.copy())
+        key_points, key_normals, key_pose, _, key_sigma = self._keyframe
+        self._keyframe = (key_points, key_normals, correction @ key_pose, covariance.copy(), key_sigma)
         self.pose, self.covariance = pose.copy(), covariance.copy()
 
     def state(self) -> dict[str, np.ndarray]:
         """Everything `track` needs to continue, as arrays (for checkpoints; see `restore`)."""
         if self._keyframe is None:
             return {"started": np.array(False)}
-        key_points, key_normals, key_pose, key_covariance = self._keyframe
+        key_points, key_normals, key_pose, key_covariance, key_sigma = self._keyframe
         state = {
             "started": np.array(True), "key_points": key_points, "key_pose": key_pose, "key_covariance": key_covariance,
             "key_inliers": np.array(np.nan if self._key_inliers is None else self._key_inliers),
@@ -647,6 +702,8 @@ class FrameTracker:
         }
         if key_normals is not None:
             state["key_normals"] = key_normals
+        if key_sigma is not None:
+            state["key_sigma"] = key_sigma
         if self._previous_odometry is not None:
             state["previous_odometry"] = self._previous_odometry
         return state
@@ -656,7 +713,8 @@ class FrameTracker:
         if not bool(state["started"]):
             self._keyframe = None
             return
-        self._keyframe = (state["key_points"], state.get("key_normals"), state["key_pose"], state["key_covariance"])
+        self._keyframe = (state["key_points"], state.get("key_normals"), state["key_pose"], state["key_covariance"],
+                          state.get("key_sigma"))
         inliers = float(state["key_inliers"])
         self._key_inliers = None if math.isnan(inliers) else inliers
         self._motion, self.pose, self.covariance = state["motion"], state["pose"], state["covariance"]
@@ -718,6 +776,88 @@ def _as_points(points: Any, name: str) -> np.ndarray:
     return valid
 
 
+def _sigma_grid(sigma: Any, points: np.ndarray, name: str) -> tuple[np.ndarray, np.ndarray]:
+    """``sigma`` (float64) and ``points`` as (H, W) and (H, W, 3) grids (an (N, 3) array as one row).
+
+    A ValueError unless ``sigma`` has the points' shape without the last axis.
+    """
+    values = np.asarray(sigma, dtype=np.float64)
+    if values.shape != points.shape[:-1]:
+        raise ValueError(
+            f"{name} must have the points' shape without the last axis, {points.shape[:-1]}, got {values.shape}")
+    return values.reshape(-1, values.shape[-1]), points.reshape(-1, *points.shape[-2:])
+
+
+def _require_sigma(bad: int, name: str) -> None:
+    if bad:
+        raise ValueError(f"{name} must be finite and > 0 wherever there is a point; {bad} points are not")
+
+
+def _source_noise(sigma: Any, points: np.ndarray) -> np.ndarray:
+    """``sigma^2 / |p|^2`` (`_along_normal`) of the valid source points, compacted as `_as_points` compacts them.
+
+    A ValueError unless ``sigma`` fits and is finite and > 0 at every point.
+    """
+    values, grid = _sigma_grid(sigma, points, "source_sigma")
+    # Compiled, as `_as_points`: NumPy's masks cost 4 ms at 640x480, a quarter of a registration.
+    kept, bad = _sigma_rows(grid, values)
+    _require_sigma(bad, "source_sigma")
+    return kept
+
+
+def _target_variance(sigma: Any, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Per target point, the variance its range noise gives a point-to-plane residual (`_along_normal`).
+
+    Shaped as the points without their last axis, float32 as the points (a
+    weight needs no more digits); NaN where there is no point or normal. A
+    ValueError unless ``sigma`` fits and is finite and > 0 at every point.
+    The target's share depends on the target alone: computed once here, not
+    in every pass (which then reads one number, as it reads a point).
+    """
+    values, grid = _sigma_grid(sigma, points, "target_sigma")
+    variance, bad = _target_variance_grid(grid, normals.reshape(grid.shape), values, _MIN_INCIDENCE_SQUARED)
+    _require_sigma(bad, "target_sigma")
+    return variance.reshape(points.shape[:-1])
+
+
+@numba.njit(**_JIT)
+def _sigma_rows(grid, sigma):  # pragma: no cover - compiled
+    """``sigma^2 / |p|^2`` of an (H, W, 3) grid's points p without NaN, row by row (as `_finite_rows`), and how many
+    sigmas are not finite and > 0."""
+    kept = np.empty(grid.shape[0] * grid.shape[1], np.float32)
+    count = bad = 0
+    for row in range(grid.shape[0]):
+        for column in range(grid.shape[1]):
+            x, y, z = grid[row, column, 0], grid[row, column, 1], grid[row, column, 2]
+            if x == x and y == y and z == z:
+                value = sigma[row, column]
+                kept[count] = value * value / (x * x + y * y + z * z)
+                count += 1
+                if not (value > 0.0 and value < math.inf):
+                    bad += 1
+    return kept[:count], bad
+
+
+@numba.njit(**_JIT)
+def _target_variance_grid(grid, normals, sigma, min_incidence):  # pragma: no cover - compiled
+    """`_along_normal` of every point of an (H, W, 3) grid (its ray: its own coordinates), NaN without a point or normal;
+    and how many points have no finite sigma > 0."""
+    variance = np.full(sigma.shape, np.nan, np.float32)
+    bad = 0
+    for row in range(grid.shape[0]):
+        for column in range(grid.shape[1]):
+            x, y, z = grid[row, column, 0], grid[row, column, 1], grid[row, column, 2]
+            if not (x == x and y == y and z == z):
+                continue
+            value = sigma[row, column]
+            if not (value > 0.0 and value < math.inf):
+                bad += 1
+                continue
+            variance[row, column] = _along_normal(value * value / (x * x + y * y + z * z), normals[row, column, 0],
+                                                  normals[row, column, 1], normals[row, column, 2], x, y, z, min_incidence)
+    return variance, bad
+
+
 @numba.njit(**_JIT)
 def _finite_rows(grid):  # pragma: no cover - compiled
     """The points of an (H, W, 3) grid without NaN, row by row, as (N, 3); and whether one has an infinite coordinate."""
@@ -741,10 +881,20 @@ class _Pairs:
     moved: np.ndarray  # (K, 3) source points in the target frame
     target: np.ndarray  # (K, 3)
     normals: np.ndarray | None  # (K, 3)
+    variance: np.ndarray | None = None  # (K,) point-to-plane residual variance from range noise (m^2)
 
     @property
     def count(self) -> int:
         return len(self.moved)
+
+    def robust_weights(self, method: str, max_distance: float) -> tuple[np.ndarray, np.ndarray]:
+        """Tukey weights (over the residual variances, if known) and the residuals they judged (normalized by their sigma)."""
+        residual = self.residuals(method)
+        if self.variance is None:
+            return _tukey(residual, _robust_scale(residual, max_distance)), residual
+        # As the compiled pass: the robust test on r / sigma_r, whose scale is not bounded in metres.
+        normalized = residual / np.sqrt(self.variance)
+        return _tukey(normalized, _robust_scale(normalized, math.inf)) / self.variance, normalized
 
     def residuals(self, method: str) -> np.ndarray:
         difference = self.moved - self.target
@@ -772,12 +922,17 @@ class _Pairs:
 
 
 class _Associator:
-    """Pairs source points (moved into the target frame) with target points and normals."""
+    """Pairs source points (moved into the target frame) with target points and normals (and `_target_variance`)."""
 
-    def __init__(self, target: np.ndarray, normals: np.ndarray | None, projection: PinholeProjection | None) -> None:
+    def __init__(
+        self, target: np.ndarray, normals: np.ndarray | None, projection: PinholeProjection | None,
+        variance: np.ndarray | None = None,
+    ) -> None:
         self.projection = projection
         if projection is not None:
             self.grid, self.grid_normals = target, normals
+            # An empty grid: the compiled pass then weighs without the target's noise.
+            self.grid_variance = np.empty((0, 0), np.float32) if variance is None else variance
             self.height, self.width = target.shape[:2]
             self.intrinsics = np.array([projection.fx, projection.fy, projection.cx, projection.cy])
         else:
@@ -790,36 +945,58 @@ class _Associator:
             else:
                 self.normals = None
             self.points = flat[keep]
+            self.variance = None if variance is None else variance.reshape(-1)[keep]
             if len(self.points) == 0:
                 raise ValueError("the target has no valid points")
             self.tree = cKDTree(self.points)
 
     def projective_quality(
-        self, source: np.ndarray, transform: np.ndarray, max_distance: float, scale: float
-    ) -> tuple[np.ndarray, int, int, float]:
-        """Projective point-to-plane pairs at a pose: (information, pairs, inliers, inliers' RMS residual)."""
-        information, _, count, inliers, squares = _projective_pass(
+        self, source: np.ndarray, transform: np.ndarray, max_distance: float, scale: float,
+        source_noise: np.ndarray | None = None,
+    ) -> tuple[np.ndarray, int, int, float, float]:
+        """Projective point-to-plane pairs at a pose.
+
+        Returns (information, pairs, inliers, inliers' RMS residual, their
+        RMS normalized residual): the last equals the RMS residual without
+        range sigmas.
+        """
+        information, _, count, inliers, squares, normalized = _projective_pass(
             source, transform, self.grid, self.grid_normals, self.intrinsics, max_distance, scale, np.empty(len(source)),
-            np.empty((8, _CHUNK)),
+            np.empty((8, _CHUNK)), np.empty(0) if source_noise is None else source_noise, self.grid_variance,
+            _MIN_INCIDENCE_SQUARED,
         )
-        return information, count, inliers, math.sqrt(squares / inliers) if inliers else math.nan
+        if not inliers:
+            return information, count, inliers, math.nan, math.nan
+        return information, count, inliers, math.sqrt(squares / inliers), math.sqrt(normalized / inliers)
 
     def projective_level(
         self, source: np.ndarray, transform: np.ndarray, max_distance: float, scale: float, max_iterations: int,
-        rotation_tolerance: float, translation_tolerance: float, min_inliers: int,
+        rotation_tolerance: float, translation_tolerance: float, min_inliers: int, source_noise: np.ndarray | None = None,
     ) -> tuple[np.ndarray, float, int, bool, int]:
         """One level's projective point-to-plane iterations (`_projective_level`)."""
+        weighted = source_noise is not None or self.grid_variance.size > 0
         return _projective_level(
             source, transform, self.grid, self.grid_normals, self.intrinsics, max_distance, scale, max_iterations,
-            rotation_tolerance, translation_tolerance, min_inliers,
+            rotation_tolerance, translation_tolerance, min_inliers, np.empty(0) if source_noise is None else source_noise,
+            self.grid_variance, _MIN_INCIDENCE_SQUARED, math.inf if weighted else max_distance,
         )
 
-    def __call__(self, source: np.ndarray, transform: np.ndarray, max_distance: float) -> _Pairs:
+    def __call__(
+        self, source: np.ndarray, transform: np.ndarray, max_distance: float, source_noise: np.ndarray | None = None
+    ) -> _Pairs:
         moved = source @ transform[:3, :3].T + transform[:3, 3]
         if self.projection is None:
             distance, index = self.tree.query(moved, distance_upper_bound=max_distance)
             found = np.isfinite(distance)
-            return _Pairs(moved[found], self.points[index[found]], None if self.normals is None else self.normals[index[found]])
+            index = index[found]
+            pairs = _Pairs(moved[found], self.points[index], None if self.normals is None else self.normals[index])
+            if source_noise is not None or self.variance is not None:
+                pairs.variance = _pair_variances(
+                    pairs.normals, np.empty(0, np.float32) if self.variance is None else self.variance[index],
+                    pairs.moved - transform[:3, 3], np.empty(0) if source_noise is None else source_noise[found],
+                    _MIN_INCIDENCE_SQUARED,
+                )
+            return pairs
         p = self.projection
         with np.errstate(divide="ignore", invalid="ignore"):
             u = np.round(p.fx * moved[:, 0] / moved[:, 2] + p.cx)
@@ -938,7 +1115,7 @@ def _converged(delta, rotation_tolerance, translation_tolerance):  # pragma: no 
 def _point_to_plane_step(pairs: _Pairs, max_distance: float) -> np.ndarray:
     """One Gauss-Newton step of the point-to-plane error (small-angle linearisation)."""
     residual = pairs.residuals("point_to_plane")
-    weights = _tukey(residual, _robust_scale(residual, max_distance))
+    weights, _ = pairs.robust_weights("point_to_plane", max_distance)
     jacobian = pairs.plane_jacobian()
     weighted = jacobian * weights[:, None]
     return _solve(weighted.T @ jacobian, weighted.T @ residual)
@@ -946,8 +1123,7 @@ def _point_to_plane_step(pairs: _Pairs, max_distance: float) -> np.ndarray:
 
 def _point_to_point_step(pairs: _Pairs, max_distance: float) -> np.ndarray:
     """Weighted Kabsch step: the rigid motion that best maps the moved points onto their pairs."""
-    residual = pairs.residuals("point_to_point")
-    weights = _tukey(residual, _robust_scale(residual, max_distance))
+    weights, _ = pairs.robust_weights("point_to_point", max_distance)
     total = weights.sum()
     if total <= 0:
         return np.zeros(6)
@@ -1046,16 +1222,29 @@ def _covariance(information: np.ndarray, rmse: float) -> tuple[np.ndarray, np.nd
 
 
 @numba.njit(**_JIT)
-def _projective_pass(source, transform, grid, normals, intrinsics, max_distance, scale, residuals, rows):  # pragma: no cover - compiled
+def _projective_pass(
+    source, transform, grid, normals, intrinsics, max_distance, scale, residuals, rows, source_noise, target_variance,
+    min_incidence,
+):  # pragma: no cover - compiled
     """Pair, then accumulate J^T W J and J^T W r of the Tukey-weighted point-to-plane residuals (J = [p x n, n]).
 
     Every paired residual is written to ``residuals`` (for the next robust
     scale); returns (information, gradient, pairs, inliers, sum of the
-    inliers' squared residuals), inliers being the pairs of nonzero weight.
-    The inliers' Jacobian rows, residuals and weights go to ``rows`` (8, C)
-    and are summed every C inliers by `_accumulate`: the branchy pairing
-    and the branch-free sums each compile to a tight loop (a third faster
-    than one loop doing both), and C columns stay in cache.
+    inliers' squared residuals, sum of their squared normalized residuals),
+    inliers being the pairs of nonzero weight. The inliers' Jacobian rows,
+    residuals and weights go to ``rows`` (8, C) and are summed every C
+    inliers by `_accumulate`: the branchy pairing and the branch-free sums
+    each compile to a tight loop (a third faster than one loop doing both),
+    and C columns stay in cache.
+
+    With range noise (``source_noise``, sigma^2 / |p|^2 per source point,
+    and the target's share of the variance ``target_variance`` per pixel;
+    empty when not given)
+    each residual is normalized by its standard deviation from range noise,
+    ``sigma_r^2 = sum sigma^2 max((n . u)^2, min_incidence)`` over the
+    frames given (`_along_normal`; ``u`` the unit line of sight to the
+    point): the Tukey test (``scale`` in units of ``sigma_r``) and
+    ``residuals`` take ``r / sigma_r``, the weights carry ``1 / sigma_r^2``.
     """
     sums = np.zeros((6, 7))
     # The transform and intrinsics in registers, not reloaded per point.
@@ -1065,8 +1254,9 @@ def _projective_pass(source, transform, grid, normals, intrinsics, max_distance,
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     height, width = grid.shape[0], grid.shape[1]
     limit = max_distance * max_distance
+    with_source, with_target = source_noise.shape[0] > 0, target_variance.shape[0] > 0
     count = inliers = filled = 0
-    squares = 0.0
+    squares = normalized_squares = 0.0
     for k in range(source.shape[0]):
         x, y, z = source[k, 0], source[k, 1], source[k, 2]
         mx = t00 * x + t01 * y + t02 * z + t03
@@ -1089,13 +1279,24 @@ def _projective_pass(source, transform, grid, normals, intrinsics, max_distance,
         if (mx - tx) ** 2 + (my - ty) ** 2 + (mz - tz) ** 2 > limit:
             continue
         residual = (mx - tx) * nx + (my - ty) * ny + (mz - tz) * nz
-        residuals[count] = residual
+        inverse_variance = 1.0
+        if with_source or with_target:
+            variance = 0.0
+            if with_target:
+                variance += target_variance[v, u]
+            if with_source:
+                # The source's line of sight in the target frame: from its sensor (the translation) to the moved point.
+                variance += _along_normal(source_noise[k], nx, ny, nz, mx - t03, my - t13, mz - t23, min_incidence)
+            inverse_variance = 1.0 / variance
+        normalized = residual * math.sqrt(inverse_variance)
+        residuals[count] = normalized
         count += 1
-        ratio = residual / scale
+        ratio = normalized / scale
         if abs(ratio) >= 1.0:
             continue
         inliers += 1
         squares += residual * residual
+        normalized_squares += normalized * normalized
         rows[0, filled] = my * nz - mz * ny
         rows[1, filled] = mz * nx - mx * nz
         rows[2, filled] = mx * ny - my * nx
@@ -1103,7 +1304,7 @@ def _projective_pass(source, transform, grid, normals, intrinsics, max_distance,
         rows[4, filled] = ny
         rows[5, filled] = nz
         rows[6, filled] = residual
-        rows[7, filled] = (1.0 - ratio * ratio) ** 2
+        rows[7, filled] = (1.0 - ratio * ratio) ** 2 * inverse_variance
         filled += 1
         if filled == rows.shape[1]:
             _accumulate(rows, filled, sums)
@@ -1113,7 +1314,37 @@ def _projective_pass(source, transform, grid, normals, intrinsics, max_distance,
     for a in range(6):
         for b in range(a, 6):
             information[a, b] = information[b, a] = sums[a, b]
-    return information, sums[:, 6].copy(), count, inliers, squares
+    return information, sums[:, 6].copy(), count, inliers, squares, normalized_squares
+
+
+@numba.njit(**_JIT)
+def _along_normal(scaled, nx, ny, nz, rx, ry, rz, min_incidence):  # pragma: no cover - compiled
+    """Variance along the normal n of a point at r whose range errs by sigma: sigma^2 max((n . u)^2, min_incidence), u = r / |r|.
+
+    Range noise moves a point along its line of sight; the residual sees the
+    part along the normal. From ``scaled = sigma^2 / |r|^2`` (per point, in
+    advance) as ``scaled max((n . r)^2, min_incidence |r|^2)``: no root and
+    no division in the passes, which run it for every pair.
+    """
+    along = nx * rx + ny * ry + nz * rz
+    return scaled * max(along * along, min_incidence * (rx * rx + ry * ry + rz * rz))
+
+
+@numba.njit(**_JIT)
+def _pair_variances(normals, target_variance, rays, source_noise, min_incidence):  # pragma: no cover - compiled
+    """Point-to-plane residual variances of pairs from range noise, as in `_projective_pass` (empty arrays are left out).
+
+    ``target_variance`` is the target points' share (`_target_variance`),
+    ``rays`` are the source points' lines of sight in the target frame.
+    """
+    variance = np.zeros(len(normals))
+    for k in range(len(normals)):
+        if len(target_variance):
+            variance[k] = target_variance[k]
+        if len(source_noise):
+            variance[k] += _along_normal(source_noise[k], normals[k, 0], normals[k, 1], normals[k, 2], rays[k, 0], rays[k, 1],
+                                         rays[k, 2], min_incidence)
+    return variance
 
 
 @numba.njit(**_JIT)
@@ -1131,26 +1362,28 @@ def _accumulate(rows, filled, sums):  # pragma: no cover - compiled
 @numba.njit(**_JIT)
 def _projective_level(
     source, transform, grid, normals, intrinsics, max_distance, scale, max_iterations, rotation_tolerance,
-    translation_tolerance, min_inliers,
+    translation_tolerance, min_inliers, source_noise, target_variance, min_incidence, scale_distance,
 ):  # pragma: no cover - compiled
     """One coarse-to-fine level of projective point-to-plane ICP: Gauss-Newton steps until one is below the tolerances.
 
     Each pass weighs its pairs with the robust scale of the previous pass's
-    residuals. Returns (transform, scale, iterations, converged, pairs of
-    the last pass); a pass with fewer than ``min_inliers`` pairs ends the
-    level there.
+    residuals (at most ``_TUKEY * scale_distance``; sigmas and
+    ``min_incidence`` as in `_projective_pass`). Returns (transform, scale,
+    iterations, converged, pairs of the last pass); a pass with fewer than
+    ``min_inliers`` pairs ends the level there.
     """
     residuals = np.empty(source.shape[0])
     rows = np.empty((8, _CHUNK))
     count = iteration = 0
     converged = False
     while iteration < max_iterations and not converged:
-        information, gradient, count, _, _ = _projective_pass(
-            source, transform, grid, normals, intrinsics, max_distance, scale, residuals, rows
+        information, gradient, count, _, _, _ = _projective_pass(
+            source, transform, grid, normals, intrinsics, max_distance, scale, residuals, rows, source_noise,
+            target_variance, min_incidence,
         )
         if count < min_inliers:
             break
-        scale = _robust_scale(residuals[:count], max_distance)
+        scale = _robust_scale(residuals[:count], scale_distance)
         delta = _solve(information, gradient)
         transform = _compose(_exp(delta), transform)
         converged = _converged(delta, rotation_tolerance, translation_tolerance)
