@@ -1280,6 +1280,7 @@ def _projective_pass(
             continue
         residual = (mx - tx) * nx + (my - ty) * ny + (mz - tz) * nz
         inverse_variance = 1.0
+        normalized = residual
         if with_source or with_target:
             variance = 0.0
             if with_target:
@@ -1288,7 +1289,8 @@ def _projective_pass(
                 # The source's line of sight in the target frame: from its sensor (the translation) to the moved point.
                 variance += _along_normal(source_noise[k], nx, ny, nz, mx - t03, my - t13, mz - t23, min_incidence)
             inverse_variance = 1.0 / variance
-        normalized = residual * math.sqrt(inverse_variance)
+            # The root only where there are sigmas: unweighted, every pair would pay for it.
+            normalized = residual * math.sqrt(inverse_variance)
         residuals[count] = normalized
         count += 1
         ratio = normalized / scale
