@@ -494,3 +494,30 @@ def test_carving_rejects_what_it_cannot_use():
         model.carve(np.zeros((4, 4)), None, np.eye(4), range_sigma=0.005)
     with pytest.raises(ValueError, match="covariance"):
         model.carve(np.zeros((4, 4)), CAMERA, np.eye(4), range_sigma=0.005, covariance=np.full((6, 6), np.nan))
+
+
+def test_align_cannot_make_a_pose_more_certain_than_the_map_is(arena_run):
+    """Patches placed by poses as uncertain as this one share its error: aligning to them leaves the covariance.
+
+    Drift is a random walk: the poses that placed the patches carried part of
+    this pose's error, which no fit to those patches can remove. Placed with
+    the pose's own covariance, the patches do not shrink its covariance;
+    placed with 1/16 of it (long ago, before the drift), they pull the pose
+    back and shrink its covariance, but never below that 1/16.
+    """
+    _, single, truths = arena_run
+    surfaces, truth = [surface for surface, _ in single], single[0][1]
+    placed = np.diag([np.radians(0.3) ** 2] * 3 + [0.01**2] * 3)
+    model = GlobalModel()
+    for surface, pose in single:
+        model.add_frame([surface], pose, covariance=placed)
+    shared = model.align(surfaces, truth, placed)
+    assert shared.planes >= 3
+    assert np.allclose(shared.covariance, placed, rtol=0.03, atol=0.01 * placed[0, 0])
+    drifted = _perturbed(truth, 0.2, [0.02, -0.015, 0.01])
+    later = model.align(surfaces, drifted, 16 * placed)
+    assert later.applied
+    assert np.trace(later.covariance) < 0.5 * np.trace(16 * placed)
+    assert np.linalg.eigvalsh(later.covariance - 0.9 * placed).min() > 0
+    before = np.linalg.norm(drifted[:3, 3] - truth[:3, 3])
+    assert np.linalg.norm(later.T_world_sensor[:3, 3] - truth[:3, 3]) < 0.5 * before
