@@ -13,7 +13,7 @@ from rangesurf.normals import (
     _box_normals_reference,
     _inverse_depth_reference,
     _plane_fit_reference,
-    _plane_normal,
+    _plane_normals,
     _spikes_and_jumps,
     depth_discontinuities,
     estimate_normals,
@@ -101,22 +101,26 @@ def test_adaptive_ladder_matches_numpy_reference_at_each_size():
         assert np.max(normal_angle_error(normals, reference)[chosen]) < 0.05
 
 
-def test_plane_normal_matches_eigh():
-    """The Newton-method plane fit of the fallback against NumPy's eigen decomposition."""
+def test_plane_normals_match_eigh():
+    """The Newton-method plane fits of the fallback against NumPy's eigen decomposition, all sets in one call."""
     rng = np.random.default_rng(6)
-    normal = np.zeros(3)
-    for spread in (1e-3, 0.1, 0.5, 1.0):
+    spreads = (1e-3, 0.1, 0.5, 1.0)
+    # One set per spread, then a collinear one and one of two points: no plane.
+    sums = np.zeros((len(spreads) + 2, 10))
+    references = []
+    for row, spread in enumerate(spreads):
         points = rng.normal(0, 1, (25, 3)) * (1.0, 0.7, spread) + (0.2, -0.1, 2.0)
-        sums = np.zeros(10)
         for x, y, z in points:
-            add_point.py_func(sums, x, y, z)
-        assert _plane_normal(sums, normal)
-        reference, _ = _plane_fit_reference(points)
-        assert abs(abs(normal @ reference) - 1) < 1e-9
-    collinear = np.zeros(10)
+            add_point.py_func(sums[row], x, y, z)
+        references.append(_plane_fit_reference(points)[0])
     for t in range(5):
-        add_point.py_func(collinear, float(t), 2.0 * t, 0.0)
-    assert not _plane_normal(collinear, normal)
+        add_point.py_func(sums[-2], float(t), 2.0 * t, 0.0)
+    for t in range(2):
+        add_point.py_func(sums[-1], float(t), 0.5, 1.0 - t)
+    normals = _plane_normals(sums)
+    for row, reference in enumerate(references):
+        assert abs(abs(normals[:, row] @ reference) - 1) < 1e-9
+    assert np.isnan(normals[:, -2:]).all()
 
 
 def test_windows_never_mix_across_a_depth_step():

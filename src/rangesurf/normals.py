@@ -29,8 +29,9 @@ pixel coordinates on a plane: the same integral-image idea with five sums
 per window (count, ``1/z``, ``1/z`` times column and row, ``(1/z)^2``), and
 a ladder of three window sizes tried largest first instead of the Mitra &
 Nguyen radius.  The largest size is evaluated for a whole image row in one
-branch-free loop the compiler vectorises; that, and folding the input checks
-into the kernels' passes, is what makes it as fast as OpenCV's FALS normals
+branch-free loop the compiler vectorises, and each smaller one for the row's
+pixels still without a window likewise; that, and folding the input checks
+into the kernels' passes, is what makes it faster than OpenCV's FALS normals
 (``benchmarks/results/segmentation.md``).
 
 References
@@ -814,8 +815,11 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
 
     Row by row, the largest window's fit is computed for every pixel in one
     branch-free loop (which the compiler vectorises); the pixels it does not
-    suit go down the ladder one by one, and those with no clean window at
-    all are fitted together after the last row (`_gated_sums`).
+    suit go down the ladder, each smaller size fitted for all of the row's
+    pixels left in such a loop (`_ladder_fits`; a pixel at a time, down
+    the ladder, these fits took a third of the kernel's time). Those with no
+    clean window at all are fitted together after the last row
+    (`_gated_sums`, `_plane_normals`).
     """
     height, width = valid.shape
     normals = np.empty((height, width, 3), dtype=np.float32)
@@ -836,9 +840,23 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
     column_reciprocal = 1.0 / column_count
     column_factor = 12.0 / (column_count * (column_count * column_count - 1.0))
     column_centre = np.arange(width) - column_offset + column_middle
+    # Per column for each smaller size: the window's width, its centre's offset from the pixel, and that
+    # centre counted from the image centre.
+    level_columns = np.empty((n_sizes - 1, width), np.int64)
+    level_middle = np.empty((n_sizes - 1, width))
+    level_centre = np.empty((n_sizes - 1, width))
+    for index in range(n_sizes - 1):
+        for j in range(width):
+            level_columns[index, j], level_middle[index, j] = _clipped_extent(j, sizes[index] // 2, width)
+            level_centre[index, j] = j - column_offset + level_middle[index, j]
     accepted = np.zeros(width, np.bool_)
-    sums = np.zeros(10)
-    normal = np.zeros(3)
+    # Per row: the columns of the pixels still going down the ladder (unsigned: no wrap-around test where
+    # they index) and their noise variance of 1/z; room for `_ladder_fits`' inputs and one size's fits.
+    pending = np.empty(width, np.uint32)
+    pending_variance = np.empty(width)
+    gathered = np.empty((9, width))
+    fitted = np.zeros(width, np.bool_)
+    fit = np.empty((4, width))
     # Pixels without a clean window, fitted after the rows (`_gated_sums`).
     gated_rows = np.empty(height * width, np.int64)
     gated_cols = np.empty(height * width, np.int64)
@@ -865,7 +883,9 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
         sigma_row = sigma[i]
         inverse_row = inverse[i]
         distance_row = distance[i]
+        valid_row = valid[i]
         out = normals[i]
+        radius_row = radius[i]
         v_offset = i - cy
         for j in range(width):
             count = count_br[j] - count_tr[j] - count_bl[j] + count_tl[j]
@@ -898,144 +918,198 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
             accepted[j] = (count == n) & ((n == span * span) | any_residual) & (any_residual | (residual <= variance * allowed)) & (norm_squared > 0.0)
             # Facing the sensor (n . p < 0): n . p has the sign of -(fitted 1/z at the pixel) = -(c + centre).
             scale = -math.copysign(1.0, c + centre) / math.sqrt(norm_squared)
-            out[j, 0] = big_a * scale
-            out[j, 1] = big_b * scale
-            out[j, 2] = big_c * scale
+            # An invalid pixel gets no normal; one the largest window does not suit gets its normal and
+            # radius further down the ladder.
+            out[j, 0] = big_a * scale if valid_row[j] else np.nan
+            out[j, 1] = big_b * scale if valid_row[j] else np.nan
+            out[j, 2] = big_c * scale if valid_row[j] else np.nan
+            radius_row[j] = largest if accepted[j] & valid_row[j] else -1
+        # The pixels the largest window does not suit go down the ladder, a size at a time, each size fitted
+        # for all of the row's pixels left at once (`_ladder_fits`). Listed without a branch (whether a
+        # pixel is listed is hard to predict): each is written at the end of the list, which grows if it is.
+        n_pending = 0
         for j in range(width):
-            if accepted[j] and valid[i, j]:
-                radius[i, j] = largest
-                continue
-            if not valid[i, j]:
-                normals[i, j, 0] = np.nan
-                normals[i, j, 1] = np.nan
-                normals[i, j, 2] = np.nan
-                radius[i, j] = -1
-                continue
-            # Down the ladder: the smaller windows.
+            pending[n_pending] = j
+            n_pending += valid_row[j] & ~accepted[j]
+        for k in range(n_pending):
+            j = pending[k]
             if noise >= 0.0:
-                variance = noise
+                pending_variance[k] = noise
             else:
                 scaled = sigma[i, j] / (distance[i, j] * points[i, j, 2])
-                variance = scaled * scaled
-            found = -2
-            a = b = c = np.nan
-            # The largest window was tried above; the smaller ones may be clipped by the border.
-            for index in range(n_sizes - 2, -1, -1):
-                half = sizes[index] // 2
-                top = pad + i - half
-                left = pad + j - half
-                bottom = pad + i + half + 1
-                right = pad + j + half + 1
-                rows_here, middle_row = _clipped_extent(i, half, height)
-                columns, middle_column = _clipped_extent(j, half, width)
-                n = rows_here * columns
-                if rows_here < 2 or columns < 2 or _rectangle_sum(table, top, bottom, left, right, 0) != n:
-                    continue
-                total = _rectangle_sum(table, top, bottom, left, right, 1)
-                slope_s = _rectangle_sum(table, top, bottom, left, right, 2) - (j - column_offset + middle_column) * total
-                slope_t = _rectangle_sum(table, top, bottom, left, right, 3) - (i - row_offset + middle_row) * total
-                a = 12.0 * slope_s / (n * (columns * columns - 1.0))
-                b = 12.0 * slope_t / (n * (rows_here * rows_here - 1.0))
-                if index > 0:
-                    squares = _rectangle_sum(table, top, bottom, left, right, 4)
-                    residual = squares - total * total / n - slope_s * a - slope_t * b
-                    if not residual <= variance * _chi_square_allowance(n):
-                        continue
-                c = total / n - a * middle_column - b * middle_row
-                found = half
+                pending_variance[k] = scaled * scaled
+        # The largest window was tried above; the smaller ones may be clipped by the border.
+        for index in range(n_sizes - 2, -1, -1):
+            if n_pending == 0:
                 break
-            if found == -2:
-                # No clean window: a total least-squares plane through the neighbours on this side of the
-                # depth jump. (Least squares of 1/z is more accurate on average there, but region growing
-                # finds more planes with these normals: thin strips between a jump and the border.)
-                radius[i, j] = -1
-                gated_rows[n_gated] = i
-                gated_cols[n_gated] = j
-                n_gated += 1
-                continue
-            big_a = a * fx
-            big_b = b * fy
-            big_c = c + centre - a * (j - cx) - b * (i - cy)
-            norm_squared = big_a * big_a + big_b * big_b + big_c * big_c
-            if not norm_squared > 0.0:
-                normals[i, j, 0] = np.nan
-                normals[i, j, 1] = np.nan
-                normals[i, j, 2] = np.nan
-                radius[i, j] = -1
-                continue
-            scale = -math.copysign(1.0, c + centre) / math.sqrt(norm_squared)
-            normals[i, j, 0] = big_a * scale
-            normals[i, j, 1] = big_b * scale
-            normals[i, j, 2] = big_c * scale
-            radius[i, j] = found
-    gated = _gated_sums(points, valid, distance, sigma, depth_jump, gated_rows[:n_gated], gated_cols[:n_gated], gated_radius)
+            half = sizes[index] // 2
+            _ladder_fits(table, pad, i, half, height, level_columns[index], level_middle[index], level_centre[index],
+                         pending_variance, index > 0, centre, fx, fy, cx, cy, pending[:n_pending], gathered, fitted, fit)
+            left = 0
+            for k in range(n_pending):
+                j = pending[k]
+                if not fitted[k]:
+                    pending[left] = j
+                    pending_variance[left] = pending_variance[k]
+                    left += 1
+                    continue
+                # Fitted, but with no normal (NaN): the pixel stays without one.
+                radius[i, j] = half if fit[3, k] > 0.0 else -1
+                normals[i, j, 0] = fit[0, k]
+                normals[i, j, 1] = fit[1, k]
+                normals[i, j, 2] = fit[2, k]
+            n_pending = left
+        for k in range(n_pending):
+            # No clean window: a total least-squares plane through the neighbours on this side of the
+            # depth jump. (Least squares of 1/z is more accurate on average there, but region growing
+            # finds more planes with these normals: thin strips between a jump and the border.)
+            radius[i, pending[k]] = -1
+            gated_rows[n_gated] = i
+            gated_cols[n_gated] = pending[k]
+            n_gated += 1
+    gated = _plane_normals(
+        _gated_sums(points, valid, distance, sigma, depth_jump, gated_rows[:n_gated], gated_cols[:n_gated], gated_radius)
+    )
     for k in range(n_gated):
         i = gated_rows[k]
         j = gated_cols[k]
-        # A copy, not a view of the row: a view per pixel costs two atomic reference-count updates.
-        for m in range(10):
-            sums[m] = gated[k, m]
-        if not _plane_normal(sums, normal):
-            normals[i, j, 0] = np.nan
-            normals[i, j, 1] = np.nan
-            normals[i, j, 2] = np.nan
-            continue
-        sign = -1.0 if normal[0] * points[i, j, 0] + normal[1] * points[i, j, 1] + normal[2] * points[i, j, 2] > 0.0 else 1.0
-        normals[i, j, 0] = sign * normal[0]
-        normals[i, j, 1] = sign * normal[1]
-        normals[i, j, 2] = sign * normal[2]
+        nx, ny, nz = gated[0, k], gated[1, k], gated[2, k]
+        sign = -1.0 if nx * points[i, j, 0] + ny * points[i, j, 1] + nz * points[i, j, 2] > 0.0 else 1.0
+        normals[i, j, 0] = sign * nx
+        normals[i, j, 1] = sign * ny
+        normals[i, j, 2] = sign * nz
     return normals, radius
 
 
+@numba.njit(**_JIT, inline="always")
+def _ladder_fits(table, pad, i, half, height, columns, column_middle, column_centre, variance, residual_test,
+                 centre, fx, fy, cx, cy, pending, gathered, fitted, fit):  # pragma: no cover - compiled
+    """One smaller size of `_ladder_kernel`'s ladder for the pixels of row ``i`` in the columns ``pending``.
+
+    ``columns``, ``column_middle`` and ``column_centre`` are per column the
+    window's width (clipped by the border), its centre's offset from the
+    pixel and that centre counted from the image centre; ``variance`` the
+    noise variance of 1/z of each pixel listed. ``fitted[k]``: pixel
+    ``pending[k]``'s window is clean and (with ``residual_test``) its
+    residual is noise; ``fit[:, k]``: its normal and 1 if there is one,
+    else NaN and 0.
+
+    The window sums and the column's factors are gathered into the rows of
+    ``gathered`` (9, W) first; then the fits, with their divisions, run in a
+    loop over those rows that the compiler vectorises (which leaves each
+    pixel's arithmetic as it is: a pixel's normal does not depend on the
+    others listed).
+    """
+    rows, middle_row = _clipped_extent(i, half, height)
+    row_centre = i - (height // 2) + middle_row
+    top = pad + i - half
+    bottom = pad + i + half + 1
+    v_offset = i - cy
+    n_pending = pending.size
+    for k in range(n_pending):
+        j = pending[k]
+        right = pad + half + 1 + j
+        left = pad - half + j
+        for m in range(5):
+            gathered[m, k] = table[m, bottom, right] - table[m, top, right] - table[m, bottom, left] + table[m, top, left]
+        gathered[5, k] = columns[j]
+        gathered[6, k] = column_middle[j]
+        gathered[7, k] = column_centre[j]
+        gathered[8, k] = j - cx
+    count, total_sum, column_sum, row_sum, square_sum = gathered[0], gathered[1], gathered[2], gathered[3], gathered[4]
+    width_of, middle_of, centre_of, offset_of = gathered[5], gathered[6], gathered[7], gathered[8]
+    fit_x, fit_y, fit_z, has_fit = fit[0], fit[1], fit[2], fit[3]
+    for k in range(n_pending):
+        n = rows * width_of[k]
+        total = total_sum[k]
+        slope_s = column_sum[k] - centre_of[k] * total
+        slope_t = row_sum[k] - row_centre * total
+        a = 12.0 * slope_s / (n * (width_of[k] * width_of[k] - 1.0))
+        b = 12.0 * slope_t / (n * (rows * rows - 1.0))
+        residual = square_sum[k] - total * total / n - slope_s * a - slope_t * b
+        clean = (rows >= 2) & (width_of[k] >= 2.0) & (count[k] == n)
+        fitted[k] = clean & ((not residual_test) | (residual <= variance[k] * _chi_square_allowance(n)))
+        c = total / n - a * middle_of[k] - b * middle_row
+        big_a = a * fx
+        big_b = b * fy
+        big_c = c + centre - a * offset_of[k] - b * v_offset
+        norm_squared = big_a * big_a + big_b * big_b + big_c * big_c
+        # Facing the sensor (n . p < 0): n . p has the sign of -(fitted 1/z at the pixel) = -(c + centre).
+        scale = -math.copysign(1.0, c + centre) / math.sqrt(norm_squared)
+        has_normal = norm_squared > 0.0
+        fit_x[k] = big_a * scale if has_normal else np.nan
+        fit_y[k] = big_b * scale if has_normal else np.nan
+        fit_z[k] = big_c * scale if has_normal else np.nan
+        has_fit[k] = 1.0 if has_normal else 0.0
+
+
 @numba.njit(**_JIT)
-def _plane_normal(sums, normal):  # pragma: no cover - compiled
-    """Total least-squares plane normal of the moments ``sums`` into ``normal``; whether there is one.
+def _plane_normals(moments):  # pragma: no cover - compiled
+    """Total least-squares plane normals of many sets of moments ``moments`` (n, 10): (3, n), NaN where a set has none.
 
     `rangesurf._planefit.smallest_eigen` without its trigonometry: the
-    smallest eigenvalue of the 3x3 covariance by Newton's method on the
+    smallest eigenvalue of each 3x3 covariance by Newton's method on the
     characteristic polynomial from 0 (below the smallest root the polynomial
     is convex and falling, so the steps rise to that root monotonically),
     then the eigenvector as the largest cross product of two rows of
     ``C - lambda I``. Several times faster, the same normal.
+
+    The sets take their Newton steps together, a step of every set still
+    going in one loop the compiler vectorises (a set that has stopped keeps
+    its root), until all have stopped: one set at a time, each step waits
+    for the one before.
     """
-    n = sums[0]
-    if n < 3.0:
-        return False
-    reciprocal = 1.0 / n
-    mx = sums[1] * reciprocal
-    my = sums[2] * reciprocal
-    mz = sums[3] * reciprocal
-    a00 = sums[4] * reciprocal - mx * mx
-    a01 = sums[5] * reciprocal - mx * my
-    a02 = sums[6] * reciprocal - mx * mz
-    a11 = sums[7] * reciprocal - my * my
-    a12 = sums[8] * reciprocal - my * mz
-    a22 = sums[9] * reciprocal - mz * mz
+    count = moments.shape[0]
+    # The covariance (a00, a01, a02, a11, a12, a22) of each set, and the coefficients of
     # det(C - l I) = -l^3 + trace l^2 - minors l + det.
-    trace = a00 + a11 + a22
-    minors = (a11 * a22 - a12 * a12) + (a00 * a22 - a02 * a02) + (a00 * a11 - a01 * a01)
-    det = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
-    if not trace > 0.0:
-        return False
-    smallest = 0.0
-    if det > 0.0:
-        for _ in range(50):
-            value = ((trace - smallest) * smallest - minors) * smallest + det
-            slope = (2.0 * trace - 3.0 * smallest) * smallest - minors
-            if not slope < 0.0:
-                break
+    covariance = np.empty((6, count))
+    trace = np.empty(count)
+    minors = np.empty(count)
+    det = np.empty(count)
+    has_plane = np.empty(count, np.bool_)
+    for k in range(count):
+        n = moments[k, 0]
+        reciprocal = 1.0 / n
+        mx = moments[k, 1] * reciprocal
+        my = moments[k, 2] * reciprocal
+        mz = moments[k, 3] * reciprocal
+        a00 = moments[k, 4] * reciprocal - mx * mx
+        a01 = moments[k, 5] * reciprocal - mx * my
+        a02 = moments[k, 6] * reciprocal - mx * mz
+        a11 = moments[k, 7] * reciprocal - my * my
+        a12 = moments[k, 8] * reciprocal - my * mz
+        a22 = moments[k, 9] * reciprocal - mz * mz
+        covariance[0, k], covariance[1, k], covariance[2, k] = a00, a01, a02
+        covariance[3, k], covariance[4, k], covariance[5, k] = a11, a12, a22
+        trace[k] = a00 + a11 + a22
+        minors[k] = (a11 * a22 - a12 * a12) + (a00 * a22 - a02 * a02) + (a00 * a11 - a01 * a01)
+        det[k] = a00 * (a11 * a22 - a12 * a12) - a01 * (a01 * a22 - a12 * a02) + a02 * (a01 * a12 - a11 * a02)
+        has_plane[k] = (n >= 3.0) & (trace[k] > 0.0)
+    smallest = np.zeros(count)
+    going = has_plane & (det > 0.0)
+    for _ in range(50):
+        still = 0
+        for k in range(count):
+            root = smallest[k]
+            value = ((trace[k] - root) * root - minors[k]) * root + det[k]
+            slope = (2.0 * trace[k] - 3.0 * root) * root - minors[k]
             step = value / slope
-            smallest -= step
-            if -step <= 1e-12 * trace:
-                break
-    vx, vy, vz, d = eigenvector(a00, a01, a02, a11, a12, a22, smallest)
-    if not d > 0.0:
-        return False
-    scale = 1.0 / math.sqrt(d)
-    normal[0] = vx * scale
-    normal[1] = vy * scale
-    normal[2] = vz * scale
-    return True
+            moves = going[k] & (slope < 0.0)
+            smallest[k] = root - step if moves else root
+            going[k] = moves & ~(-step <= 1e-12 * trace[k])
+            still += going[k]
+        if still == 0:
+            break
+    normals = np.empty((3, count))
+    for k in range(count):
+        vx, vy, vz, d = eigenvector(covariance[0, k], covariance[1, k], covariance[2, k], covariance[3, k],
+                                    covariance[4, k], covariance[5, k], smallest[k])
+        found = has_plane[k] & (d > 0.0)
+        scale = 1.0 / math.sqrt(d)
+        normals[0, k] = vx * scale if found else np.nan
+        normals[1, k] = vy * scale if found else np.nan
+        normals[2, k] = vz * scale if found else np.nan
+    return normals
 
 
 @numba.njit(**_JIT, inline="always")

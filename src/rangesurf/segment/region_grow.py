@@ -542,14 +542,15 @@ def _adjacency(labels, count):  # pragma: no cover - compiled
                 shapes[a, 4] += i * columns
                 shapes[a, 5] += squares
             start = j
-        # Inside a segment (the common case) all four pixels ahead hold its label; which of the row's pixels
-        # do is found first, in a loop the compiler vectorises.
+        # Inside a segment (the common case) none of the four pixels ahead holds another segment's label;
+        # which of the row's pixels are such is found first, in a loop the compiler vectorises.
         if i + 2 < height:
             # Rows as views, indexed by the column alone (a run-time row offset would keep the loop scalar).
             here, below, further = labels[i], labels[i + 1], labels[i + 2]
             for j in range(width - 2):
                 a = here[j]
-                alike[j] = (here[j + 1] == a) & (here[j + 2] == a) & (below[j] == a) & (further[j] == a)
+                alike[j] = (_own_or_none(here[j + 1], a) & _own_or_none(here[j + 2], a) & _own_or_none(below[j], a)
+                            & _own_or_none(further[j], a))
         else:
             alike[:] = False
         for j in range(width):
@@ -991,8 +992,9 @@ def _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, 
     moved_cols = np.empty(height * width, np.int32)
     moved_to = np.empty(height * width, np.int32)
     n_moved = 0
-    # Most pixels are inside their segment, all eight neighbours alike: nothing to move. Which of a row's
-    # are is found first, in a loop the compiler vectorises (the border's pixels never are).
+    # Most pixels have no other segment among their eight neighbours (each is of their own or of none):
+    # nothing to move. Which of a row's pixels are such is found first, in a loop the compiler vectorises
+    # (the border's pixels are left to the full test).
     inside = np.zeros(width, np.bool_)
     for i in range(height):
         if 0 < i < height - 1:
@@ -1000,9 +1002,10 @@ def _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, 
             above, here, below = labels[i - 1], labels[i], labels[i + 1]
             for j in range(1, width - 1):
                 own = here[j]
-                inside[j] = ((above[j - 1] == own) & (above[j] == own) & (above[j + 1] == own)
-                             & (here[j - 1] == own) & (here[j + 1] == own)
-                             & (below[j - 1] == own) & (below[j] == own) & (below[j + 1] == own))
+                inside[j] = (_own_or_none(above[j - 1], own) & _own_or_none(above[j], own)
+                             & _own_or_none(above[j + 1], own) & _own_or_none(here[j - 1], own)
+                             & _own_or_none(here[j + 1], own) & _own_or_none(below[j - 1], own)
+                             & _own_or_none(below[j], own) & _own_or_none(below[j + 1], own))
         else:
             inside[:] = False
         for j in range(width):
@@ -1052,6 +1055,12 @@ def _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, 
         _add_moments(moments, moved_to[k], x, y, z, 1.0)
         labels[i, j] = moved_to[k]
     return free_rows[:n_free], free_cols[:n_free]
+
+
+@numba.njit(**_JIT, inline="always")
+def _own_or_none(label, own):  # pragma: no cover - compiled
+    """Whether a neighbour labelled ``label`` belongs to segment ``own`` or to none (it is no other segment)."""
+    return (label == own) | (label <= 0)
 
 
 @numba.njit(**_JIT)
