@@ -28,14 +28,15 @@ simulator's ground truth:
   UL3 carries for those points); drifting odometry. All pixels of a frame
   share one pose error and consecutive frames most of their drift, so a
   sequence gives few independent draws: the column moves by points with
-  the odometry's seed (odometry seeds 5-8: SR-3000 arena 96.7-97.3 %,
-  corridor 99.2-99.5 %; Kinect arena 99.3-99.8 % over 50 frames, 96.9-99.2 %
-  over 100, corridor 93.6-97.0 %) and with the run's length, as the error
-  and the tracked covariance grow differently. The long run shows what
-  model alignment does to UL3 (`GlobalModel.align`): while alignments
-  counted the patches placed by the same drifting poses as independent,
-  they shrank the covariance at every alignment and the last third of a
-  200-frame SR-3000 arena run held 47-60 % of its errors.
+  the odometry's seed (odometry seeds 5-6: SR-3000 arena 97.0-97.5 %,
+  corridor 99.5-99.6 %; Kinect arena 99.6-99.8 % over 50 frames, 98.4-99.7 %
+  over 100, corridor 96.5-97.0 %; SR-3000 arena over 200 frames, seeds 5-8,
+  98.3-98.7 %) and with the run's length, as the error and the tracked
+  covariance grow differently. The long run shows what model alignment
+  does to UL3 (`GlobalModel.align`): while its covariance counted the
+  patches placed by the same drifting poses as independent, it shrank at
+  every alignment and the last third of that run held 47-60 % of its
+  errors.
 * **UL4** (level of detail): each surface of the final model at 10 % of its
   vertices; the removed vertices' height above the coarse triangulation
   against the UL4 of the nearest kept vertex.
