@@ -54,8 +54,8 @@ _ALIGN_MIN_VERTICES = 30
 _ALIGN_POINTS = 200
 _ALIGN_INDEPENDENT = 3.0
 _ALIGN_GATE = 20.0
-# At most this share of a pose's variance is taken to be the map's own (GlobalModel.align): the rest keeps
-# the maximum a posteriori step's prior invertible.
+# At most this share of a pose's variance is taken to be the map's own (GlobalModel.align): the rest, which
+# the planes shrink, stays invertible.
 _ALIGN_MAX_SHARED = 0.99
 # A surface whose normal is up to this many degrees off a patch's, lying on its plane and over its cells
 # (this share of its points), is a view of the patch (`GlobalModel._covered_by`).
