@@ -30,7 +30,10 @@ along its normal:
   (``J Sigma J^T`` with ``J = [p x n, n]``), and the disagreement of the
   fused observations beyond their noise; for bridged gaps, the gap. ICP's
   covariance is scaled up for the correlation of its residuals
-  (`rangesurf.register.FrameTracker`, ``icp_variance_scale``).
+  (`rangesurf.register.FrameTracker`, ``icp_variance_scale``); a pose
+  corrected against the model keeps the share of its variance that the
+  patches, placed by the same drifting sensor, share with it
+  (`rangesurf.merge.GlobalModel.align`).
 * **UL4, level of detail**: the RMS height error of the removed vertices nearest
   to a kept one, at the level shown (`rangesurf.lod`).
 
