@@ -433,6 +433,25 @@ def test_tracker_takes_the_odometry_along_a_degenerate_direction():
     assert np.isfinite(tracked.covariance).all()
 
 
+def test_drift_along_a_degenerate_direction_grows_with_every_frame():
+    """Along a corridor's axis only the odometry moves the pose, and dead reckoning's variance grows by one step's
+    every frame, keyframe or not: after n frames from the keyframe the axis's sigma is sqrt(n) steps' (counted once
+    per keyframe it stayed at one step's, and drift there grew unseen). Sideways, ICP keeps it small."""
+    from rangesurf.register import FrameTracker
+
+    target, normals = _corridor(np.random.default_rng(6))
+    tracker = FrameTracker(odometry_sigma=(0.01, 0.02), odometry_relative=0.0)
+    tracker.track(target, normals, odometry=np.eye(4))
+    odometry = np.eye(4)
+    for n in range(1, 6):
+        odometry[0, 3] = 0.02 * n
+        tracked = tracker.track(target - odometry[:3, 3], normals, odometry=odometry.copy())
+        assert tracked.registration.degenerate
+        assert np.sqrt(tracked.covariance[3, 3]) == pytest.approx(0.02 * np.sqrt(n), rel=0.02)
+        assert np.sqrt(tracked.covariance[4, 4]) < 2e-3
+    assert tracker.state()["key_pose"] == pytest.approx(np.eye(4))  # all five against the first frame
+
+
 def test_tracker_falls_back_to_the_prior_without_overlap():
     from rangesurf.register import FrameTracker
 

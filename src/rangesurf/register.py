@@ -580,6 +580,9 @@ class FrameTracker:
         self._key_inliers: float | None = None
         self._previous_odometry: np.ndarray | None = None
         self._motion = np.eye(4)
+        # The last frame's motion from the keyframe is uncertain by this much (a left perturbation in the
+        # keyframe's coordinates); zero when the last frame is the keyframe.
+        self._relative_covariance = np.zeros((6, 6))
         self.pose = np.eye(4)
         self.covariance = np.zeros((6, 6))
 
@@ -629,7 +632,12 @@ class FrameTracker:
             step, prior_name = self._motion, "constant_velocity"
             prior_covariance = _CONSTANT_VELOCITY_SCALE * self.prior_covariance(step)
         key_points, key_normals, key_pose, key_covariance, key_sigma = self._keyframe
-        prior = np.linalg.inv(key_pose) @ self.pose @ step
+        last_motion = np.linalg.inv(key_pose) @ self.pose
+        prior = last_motion @ step
+        # The prior's motion from the keyframe is the last frame's, as uncertain as that was, and one step
+        # more. Along directions the scene leaves unconstrained (a corridor's axis) it is all the motion
+        # there is: one step's uncertainty per keyframe would let the drift there grow unseen.
+        prior_covariance = self._relative_covariance + _to_world(last_motion, prior_covariance)
         result = fused = None
         try:
             result = icp(points, key_points, key_normals, initial=prior, method=self.method,
@@ -648,11 +656,12 @@ class FrameTracker:
             # ICP failed, or the prior rules its result out: dead-reckon one step on the prior.
             result = None
             pose = self.pose @ step
-            step_covariance = _to_world(self.pose, prior_covariance)
-            covariance = self.covariance + step_covariance
+            relative_covariance = prior_covariance
+            step_covariance = _to_world(key_pose, relative_covariance)
+            covariance = key_covariance + step_covariance
             motion = np.linalg.inv(key_pose) @ pose
         self._motion = np.linalg.inv(self.pose) @ pose
-        self.pose, self.covariance = pose, covariance
+        self.pose, self.covariance, self._relative_covariance = pose, covariance, relative_covariance
         self._previous_odometry = odometry_pose
         moved = float(np.linalg.norm(motion[:3, 3]))
         turned = math.degrees(math.acos(np.clip((np.trace(motion[:3, :3]) - 1) / 2, -1.0, 1.0)))
@@ -664,6 +673,7 @@ class FrameTracker:
         if overlap_lost or moved >= self.keyframe_distance or turned >= self.keyframe_angle:
             self._keyframe = (points, normals, pose.copy(), covariance.copy(), sigma)
             self._key_inliers = None
+            self._relative_covariance = np.zeros((6, 6))
         return TrackedPose(pose.copy(), covariance.copy(), result, prior_name, result is None, step_covariance)
 
     def prior_covariance(self, step: np.ndarray) -> np.ndarray:
@@ -691,6 +701,9 @@ class FrameTracker:
         key_points, key_normals, key_pose, _, key_sigma = self._keyframe
         self._keyframe = (key_points, key_normals, correction @ key_pose, covariance.copy(), key_sigma)
         self.pose, self.covariance = pose.copy(), covariance.copy()
+        # The keyframe now carries all of the pose's uncertainty: counting the motion's from it again
+        # would count it twice.
+        self._relative_covariance = np.zeros((6, 6))
 
     def state(self) -> dict[str, np.ndarray]:
         """Everything `track` needs to continue, as arrays (for checkpoints; see `restore`)."""
@@ -701,6 +714,7 @@ class FrameTracker:
             "started": np.array(True), "key_points": key_points, "key_pose": key_pose, "key_covariance": key_covariance,
             "key_inliers": np.array(np.nan if self._key_inliers is None else self._key_inliers),
             "motion": self._motion, "pose": self.pose, "covariance": self.covariance,
+            "relative_covariance": self._relative_covariance,
         }
         if key_normals is not None:
             state["key_normals"] = key_normals
@@ -720,6 +734,7 @@ class FrameTracker:
         inliers = float(state["key_inliers"])
         self._key_inliers = None if math.isnan(inliers) else inliers
         self._motion, self.pose, self.covariance = state["motion"], state["pose"], state["covariance"]
+        self._relative_covariance = state.get("relative_covariance", np.zeros((6, 6)))
         self._previous_odometry = state.get("previous_odometry")
 
     def _with_prior(
