@@ -138,8 +138,9 @@ class GlobalModel:
     max_plane_distance : float, optional
         Metres: the median distance of a surface's vertices from a patch's
         plane must stay below this; vertices farther than it are not fused.
-        By default 3 times the surface's median total standard deviation,
-        at least 2 cells.
+        By default 3 times the surface's median standard deviation from
+        sensor noise and registration (not its fit: see
+        `Observations.reach_variance`), at least 2 cells.
     bridge : int
         Gaps up to ``2 * bridge`` cells are closed when meshing, and a
         surface within ``bridge + 1`` cells of a patch counts as touching it.
@@ -367,7 +368,7 @@ class GlobalModel:
             normal = normal / np.linalg.norm(normal)
             plane = np.r_[normal, -normal @ points.mean(axis=0)]
             observations = _observations(surface, points, normal, bounded)
-            candidates = self._candidates(plane, points, self._reach(observations.median_variance()))
+            candidates = self._candidates(plane, points, self._reach(observations.reach_variance()))
             if not candidates:
                 continue
             patch = self.patches[max(candidates)[1]]
@@ -501,9 +502,9 @@ class GlobalModel:
             self._normals = None
         return len(folded)
 
-    def _reach(self, median_variance: float) -> float:
-        """How far (metres) observations with this median variance may lie from a patch's plane and still be on it."""
-        return self.max_plane_distance or max(3.0 * math.sqrt(median_variance), 2.0 * self.cell_size)
+    def _reach(self, variance: float) -> float:
+        """How far (metres) observations may lie from a patch's plane and still be on it (`Observations.reach_variance`)."""
+        return self.max_plane_distance or max(3.0 * math.sqrt(variance), 2.0 * self.cell_size)
 
     def _nearby(self, plane: np.ndarray, points: np.ndarray, reach: float, angle: float, larger_than: int = 0) -> list[int]:
         """Indices of the patches of more than ``larger_than`` cells within ``angle`` degrees of a surface's normal,
@@ -566,7 +567,7 @@ class GlobalModel:
         return best
 
     def _merge(self, plane: np.ndarray, observations: Observations, frame: int, counts: dict[str, int]) -> None:
-        reach = self._reach(observations.median_variance())
+        reach = self._reach(observations.reach_variance())
         cosine = math.cos(math.radians(self.max_normal_angle))
         candidates = self._candidates(plane, observations.points, reach)
         if not candidates:
@@ -862,7 +863,8 @@ def _moved(surface: Surface, points: np.ndarray, rotation: np.ndarray) -> Surfac
 @numba.njit(**_JIT)
 def _variances(points, ul1, ul2, normal, covariance):  # pragma: no cover - compiled
     """Per point, the noise (UL1^2), fit (UL2^2) and registration variances along ``normal`` (an absent
-    level -- an empty array -- or a NaN counts as 0), and the median of their sum."""
+    level -- an empty array -- or a NaN counts as 0), and the median of noise plus registration
+    (`Observations.reach_variance`)."""
     count = points.shape[0]
     noise, fit, registration = np.zeros(count), np.zeros(count), np.zeros(count)
     for k in range(count):
@@ -872,7 +874,7 @@ def _variances(points, ul1, ul2, normal, covariance):  # pragma: no cover - comp
             fit[k] = np.float64(ul2[k]) ** 2
         registration[k] = max(variance_along(points[k, 0], points[k, 1], points[k, 2], normal[0], normal[1], normal[2],
                                              covariance), 0.0)
-    median = np.median(noise + fit + registration) if count else 0.0
+    median = np.median(noise + registration) if count else 0.0
     return noise, fit, registration, median
 
 

@@ -112,10 +112,17 @@ class Observations:
     def variance(self) -> np.ndarray:
         return self.noise + self.fit + self.registration
 
-    def median_variance(self) -> float:
-        """The median of the total variances (m^2)."""
+    def reach_variance(self) -> float:
+        """The median over the points of the variance (m^2) of where a point of this surface lies off its true
+        plane: sensor noise and registration.
+
+        The fit's (UL2) is left out: it measures how far the surface is from being a plane, and a segment that
+        took in points of a neighbouring surface (a floor grown into a ramp across a shallow crease) would
+        otherwise stretch the reach its points join a patch by (`GlobalModel`) to 10-20 cm, and the patch's
+        plane would tilt toward the other surface.
+        """
         if self._median is None:
-            self._median = float(np.median(self.variance)) if len(self.points) else 0.0
+            self._median = float(np.median(self.noise + self.registration)) if len(self.points) else 0.0
         return self._median
 
 
