@@ -107,9 +107,29 @@ def test_the_volumetric_path_meshes_the_round_pillar(tmp_path):
     assert np.array_equal(resumed.finish()[-1].vertices, volume_mesh.vertices)
 
 
+def _normal_errors_within_2_sigma(frame, result, true_pose):
+    """Share of a frame's segmented points (every 7th) whose displacement along their plane's normal by the pose's
+    error, ``n . (T_est p - T_true p)``, lies within 2 sigma of the tracked covariance (``sqrt(J Sigma J^T)``,
+    ``J = [p x n, n]``, what the points' UL3 is made of)."""
+    labels = result.segmentation.labels
+    rows, cols = np.nonzero(labels > 0)
+    rows, cols = rows[::7], cols[::7]
+    points = frame.rays[rows, cols].astype(np.float64) * result.range[rows, cols, None]
+    keep = np.isfinite(points).all(axis=1)
+    points, normals = points[keep], result.segmentation.planes[labels[rows, cols][keep], :3]
+    estimate = result.T_world_sensor
+    world, world_normals = points @ estimate[:3, :3].T + estimate[:3, 3], normals @ estimate[:3, :3].T
+    error = np.einsum("ij,ij->i", world - (points @ true_pose[:3, :3].T + true_pose[:3, 3]), world_normals)
+    jacobian = np.hstack([np.cross(world, world_normals), world_normals])
+    sigma = np.sqrt(np.einsum("ij,jk,ik->i", jacobian, result.covariance, jacobian))
+    return np.mean(np.abs(error) <= 2 * sigma)
+
+
 def test_aligning_to_the_model_bounds_the_drift_of_a_long_run():
     """600 SR-3000 frames circling the arena from drifting odometry: with the planes' fit to the model every 10th
-    frame, the pose error over the last 100 frames is well below the keyframe chain's alone."""
+    frame, the pose error over the last 100 frames is well below the keyframe chain's alone, and the tracked
+    covariance stays honest all along: +-2 sigma holds at least 90 % of the pose's errors along the surface normals
+    in every third of the run."""
     import dataclasses
 
     from rangesurf.config import RegisterSettings
@@ -118,18 +138,27 @@ def test_aligning_to_the_model_bounds_the_drift_of_a_long_run():
     odometry = simulate.noisy_odometry(true_poses, seed=5)
     frames = [dataclasses.replace(frame, pose=odometry[k])
               for k, (frame, _) in enumerate(simulate.iter_sequence("arena", "sr3000", 600, seed=5, trajectory=true_poses))]
-    late = {}
+    late, covered = {}, []
     for every in (0, 10):
         pipeline = Pipeline(PipelineConfig(register=RegisterSettings(align_to_model_every=every)))
-        errors = [np.linalg.norm(pipeline.process(frame).T_world_sensor[:3, 3] - pose[:3, 3])
-                  for frame, pose in zip(frames, true_poses)]
+        errors = []
+        for frame, pose in zip(frames, true_poses):
+            result = pipeline.process(frame)
+            errors.append(np.linalg.norm(result.T_world_sensor[:3, 3] - pose[:3, 3]))
+            if every and len(errors) > 1:
+                covered.append(_normal_errors_within_2_sigma(frame, result, pose))
         late[every] = np.array(errors[500:])
-    # Measured: 13.7 against 29.3 mm (17.0 while the alignments shrank the covariance as if the patches were
-    # independent of the pose, 15.6 while the drift along unconstrained directions grew once per keyframe: the
-    # covariance, the alignment's prior, is larger now, so a correction pulls more). Over odometry seeds the
-    # ratio varies (6: 0.61, 7: 0.61).
-    assert late[10].mean() < 0.7 * late[0].mean()
-    assert late[10].max() < 0.03
+    # Measured per third: 98.7, 99.9, 100 % (98.7, 80.3, 100 % while a segment's fit residual stretched the reach it
+    # joined patches by; on odometry seeds 6 and 7 the middle third held 67 % while the drift along unconstrained
+    # directions grew once per keyframe).
+    assert min(np.mean(third) for third in np.array_split(covered, 3)) >= 0.9
+    # Measured: 10.6 (at most 14.9) against 29.3 mm. Before: 17.0 while the alignments shrank the covariance as if
+    # the patches were independent of the pose; 15.6 while the drift along unconstrained directions grew once per
+    # keyframe (the covariance is the alignment's prior: larger, it lets a correction pull more); 13.7 while a
+    # segment's fit residual stretched the reach it joined patches by (a floor grown into the ramp tilted the
+    # ramp's patch 2.4 degrees, which pulled the aligned poses off). Odometry seeds 6 and 7: ratios 0.54, 0.55.
+    assert late[10].mean() < 0.5 * late[0].mean()
+    assert late[10].max() < 0.02
 
 
 def resident_mb():
