@@ -75,6 +75,9 @@ _C1 = 1.0
 _C2 = 4.0
 # Variance of z = kappa x^2 / 2 over a uniform window of half-width w is kappa^2 w^4 / 45.
 _PARABOLA_VARIANCE = 45.0
+# Bit 0 and bit 1 of each byte of a word (eight byte flags tested as one word).
+_BIT0_BYTES = np.uint64(0x0101010101010101)
+_BIT1_BYTES = np.uint64(0x0202020202020202)
 _FOUR_NEIGHBOURS = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
 
 
@@ -583,7 +586,9 @@ def _spikes_and_jumps(distance, valid, sigma, depth_jump, check_sigma=False):  #
     compiler vectorises): the candidate jumps between neighbours, then the
     ramp test on the few candidates; then spikes, and the jumps from the
     pair flags. The flags are padded so that every pixel's four neighbours
-    are in the arrays; a pair leaving the grid is never flagged.
+    are in the arrays; a pair leaving the grid is never flagged. The ramp
+    test and the test across a missing pixel look at eight pixels at a
+    time, as the bytes of a word, and skip them while none is a candidate.
     """
     height, width = valid.shape
     size = height * width
@@ -610,8 +615,18 @@ def _spikes_and_jumps(distance, valid, sigma, depth_jump, check_sigma=False):  #
         across[i * width] = False  # the last pixel of a row has no right neighbour
     _pair_jumps(distance_flat[:-width], distance_flat[width:], noise[:-width], noise[width:], valid_flat[:-width],
                 valid_flat[width:], depth_jump, below_pair[: size - width])
+    # What the ramp test below and the test across a missing pixel further down look for, a byte per
+    # pixel: bit 0 a flagged pair, bit 1 a missing pixel. Most bytes are 0, and both tests skip eight
+    # pixels at a time (a word) while they are: a loop over single pixels costs about a cycle for each.
+    n_words = (size + 7) // 8
+    attention = np.zeros(8 * n_words, np.uint8)
     for k in range(size):
-        if right_pair[k] | below_pair[k]:  # one test for the common case, neither
+        attention[k] = np.uint8(right_pair[k] | below_pair[k]) | (np.uint8(~valid_flat[k]) << 1)
+    words = attention.view(np.uint64)
+    for word in range(n_words):
+        if words[word] & _BIT0_BYTES == 0:
+            continue
+        for k in range(8 * word, min(8 * word + 8, size)):
             i, j = k // width, k % width
             # A ramp needs a valid pixel before the pair and one after it.
             if right_pair[k] and 0 < j < width - 2 and valid_flat[k - 1] and valid_flat[k + 2]:
@@ -628,18 +643,21 @@ def _spikes_and_jumps(distance, valid, sigma, depth_jump, check_sigma=False):  #
     _jump_flags(right_pair[:size], across[:size], below_pair[:size], down[:size], clean[width : width + size],
                 clean[width + 1 : width + 1 + size], clean[width - 1 : width - 1 + size], clean[2 * width :], clean[:size], jumps)
     # Across one missing pixel (rare: tested here, not in the loops above).
-    for k in range(size):
-        if valid_flat[k]:
+    for word in range(n_words):
+        if words[word] & _BIT1_BYTES == 0:
             continue
-        i, j = k // width, k % width
-        if 0 < j < width - 1 and clean[k - 1 + width] and clean[k + 1 + width]:
-            if _is_jump(distance_flat[k - 1], distance_flat[k + 1], noise[k - 1] + noise[k + 1], depth_jump, 2.0):
-                jumps[k - 1] = True
-                jumps[k + 1] = True
-        if 0 < i < height - 1 and clean[k] and clean[k + 2 * width]:
-            if _is_jump(distance_flat[k - width], distance_flat[k + width], noise[k - width] + noise[k + width], depth_jump, 2.0):
-                jumps[k - width] = True
-                jumps[k + width] = True
+        for k in range(8 * word, min(8 * word + 8, size)):
+            if valid_flat[k]:
+                continue
+            i, j = k // width, k % width
+            if 0 < j < width - 1 and clean[k - 1 + width] and clean[k + 1 + width]:
+                if _is_jump(distance_flat[k - 1], distance_flat[k + 1], noise[k - 1] + noise[k + 1], depth_jump, 2.0):
+                    jumps[k - 1] = True
+                    jumps[k + 1] = True
+            if 0 < i < height - 1 and clean[k] and clean[k + 2 * width]:
+                if _is_jump(distance_flat[k - width], distance_flat[k + width], noise[k - width] + noise[k + width], depth_jump, 2.0):
+                    jumps[k - width] = True
+                    jumps[k + width] = True
     return clean[width : width + size].reshape((height, width)), jumps.reshape((height, width)), not (check_sigma and bad_sigma > 0)
 
 
@@ -849,10 +867,14 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
         for j in range(width):
             level_columns[index, j], level_middle[index, j] = _clipped_extent(j, sizes[index] // 2, width)
             level_centre[index, j] = j - column_offset + level_middle[index, j]
-    accepted = np.zeros(width, np.bool_)
+    # Per row: whether each pixel goes down the ladder, in whole words of eight flags for the listing
+    # below (those past the row's end stay False).
+    n_words = (width + 7) // 8
+    waiting = np.zeros(8 * n_words, np.bool_)
+    waiting_words = waiting.view(np.uint64)
     # Per row: the columns of the pixels still going down the ladder (unsigned: no wrap-around test where
     # they index) and their noise variance of 1/z; room for `_ladder_fits`' inputs and one size's fits.
-    pending = np.empty(width, np.uint32)
+    pending = np.empty(8 * n_words, np.uint32)
     pending_variance = np.empty(width)
     gathered = np.empty((9, width))
     fitted = np.zeros(width, np.bool_)
@@ -915,7 +937,7 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
             # Clipped by the border, the largest window is used only as the sole size: off-centre it
             # reaches far past the pixel on one side, across creases near the border that its residual
             # test misses (smaller windows reach less far).
-            accepted[j] = (count == n) & ((n == span * span) | any_residual) & (any_residual | (residual <= variance * allowed)) & (norm_squared > 0.0)
+            accepted = (count == n) & ((n == span * span) | any_residual) & (any_residual | (residual <= variance * allowed)) & (norm_squared > 0.0)
             # Facing the sensor (n . p < 0): n . p has the sign of -(fitted 1/z at the pixel) = -(c + centre).
             scale = -math.copysign(1.0, c + centre) / math.sqrt(norm_squared)
             # An invalid pixel gets no normal; one the largest window does not suit gets its normal and
@@ -923,14 +945,19 @@ def _ladder_kernel(table, inverse, sizes, centre, noise, points, valid, distance
             out[j, 0] = big_a * scale if valid_row[j] else np.nan
             out[j, 1] = big_b * scale if valid_row[j] else np.nan
             out[j, 2] = big_c * scale if valid_row[j] else np.nan
-            radius_row[j] = largest if accepted[j] & valid_row[j] else -1
+            radius_row[j] = largest if accepted & valid_row[j] else -1
+            waiting[j] = valid_row[j] & ~accepted
         # The pixels the largest window does not suit go down the ladder, a size at a time, each size fitted
         # for all of the row's pixels left at once (`_ladder_fits`). Listed without a branch (whether a
         # pixel is listed is hard to predict): each is written at the end of the list, which grows if it is.
+        # Eight pixels (a word of flags) are skipped at a time while none is listed: most of a row is not.
         n_pending = 0
-        for j in range(width):
-            pending[n_pending] = j
-            n_pending += valid_row[j] & ~accepted[j]
+        for word in range(n_words):
+            if waiting_words[word] == 0:
+                continue
+            for j in range(8 * word, 8 * word + 8):
+                pending[n_pending] = j
+                n_pending += waiting[j]
         for k in range(n_pending):
             j = pending[k]
             if noise >= 0.0:
@@ -995,10 +1022,12 @@ def _ladder_fits(table, pad, i, half, height, columns, column_middle, column_cen
     else NaN and 0.
 
     The window sums and the column's factors are gathered into the rows of
-    ``gathered`` (9, W) first; then the fits, with their divisions, run in a
-    loop over those rows that the compiler vectorises (which leaves each
-    pixel's arithmetic as it is: a pixel's normal does not depend on the
-    others listed).
+    ``gathered`` (9, W) first, a sum at a time for all the pixels listed
+    (the pixel's column indexes four rows of the table: at a pixel at a
+    time, the twenty rows' addresses do not all fit in registers); then the
+    fits, with their divisions, run in a loop over those rows that the
+    compiler vectorises (which leaves each pixel's arithmetic as it is: a
+    pixel's normal does not depend on the others listed).
     """
     rows, middle_row = _clipped_extent(i, half, height)
     row_centre = i - (height // 2) + middle_row
@@ -1006,12 +1035,18 @@ def _ladder_fits(table, pad, i, half, height, columns, column_middle, column_cen
     bottom = pad + i + half + 1
     v_offset = i - cy
     n_pending = pending.size
+    # The window sums of the pixel in column j: differences of the table's columns left + j and right + j.
+    right = pad + half + 1
+    left = pad - half
+    for m in range(5):
+        bottom_right, top_right = table[m, bottom, right:], table[m, top, right:]
+        bottom_left, top_left = table[m, bottom, left:], table[m, top, left:]
+        sums = gathered[m]
+        for k in range(n_pending):
+            j = pending[k]
+            sums[k] = bottom_right[j] - top_right[j] - bottom_left[j] + top_left[j]
     for k in range(n_pending):
         j = pending[k]
-        right = pad + half + 1 + j
-        left = pad - half + j
-        for m in range(5):
-            gathered[m, k] = table[m, bottom, right] - table[m, top, right] - table[m, bottom, left] + table[m, top, left]
         gathered[5, k] = columns[j]
         gathered[6, k] = column_middle[j]
         gathered[7, k] = column_centre[j]
