@@ -328,9 +328,9 @@ class GlobalModel:
         count the patches as independent of the pose, though: the same
         drifting sensor placed them, and drift being a random walk, the
         pose's error holds the error of the poses that placed them. Their
-        share of the pose's variance along their normals (``alpha``, the
+        share of the pose's variance along their normals (``shared``, the
         median over the matched planes) stays, and the planes shrink only
-        the rest: ``alpha P + inv(inv((1 - alpha) P) + planes' information)``.
+        the rest: ``shared P + inv(inv((1 - shared) P) + planes' information)``.
         So a patch built long ago by a well-placed sensor pulls a drifted
         pose back and shrinks its covariance, while patches built just now by
         the same drifting frames cannot make it look more certain than the
