@@ -291,9 +291,11 @@ def segment_vertices(
     if range_sigma is not None:
         range_sigma = check_range_sigma(distance, np.asarray(range_sigma)[::stride, ::stride] if np.ndim(range_sigma) else range_sigma)
     planes = np.asarray(segmentation.planes, dtype=np.float64)
-    # One compiled pass sorts the valid pixels by segment and sees each one's noise along its plane's normal.
-    starts, rows, cols, along, squares = _gather_segments(
-        points, labels, distance, np.empty((0, 0)) if range_sigma is None else range_sigma, planes, segmentation.n_segments)
+    # One compiled pass sorts the valid pixels by segment, copies out their points and pixels (each surface's
+    # are then a slice: NumPy's gathers cost as much as the pass), and sees each one's noise along its plane's normal.
+    starts, vertices, pixels, along, squares = _gather_segments(
+        points, labels, distance, np.empty((0, 0)) if range_sigma is None else range_sigma, planes, segmentation.n_segments,
+        stride)
     surfaces = []
     for label in range(1, segmentation.n_segments + 1):
         begin, end = starts[label], starts[label + 1]
@@ -308,21 +310,22 @@ def segment_vertices(
         if np.isfinite(segmentation.residuals[label]):
             uncertainty["UL2"] = np.full(count, segmentation.residuals[label], np.float32)
         surfaces.append(Surface(
-            vertices=points[rows[begin:end], cols[begin:end]], faces=np.zeros((0, 3), np.int32), normals=normals,
-            pixels=np.column_stack([rows[begin:end], cols[begin:end]]) * stride, plane=plane, segment=label,
+            vertices=vertices[begin:end], faces=np.zeros((0, 3), np.int32), normals=normals,
+            pixels=pixels[begin:end], plane=plane, segment=label,
             uncertainty=uncertainty,
         ))
     return surfaces
 
 
 @numba.njit(**_JIT)
-def _gather_segments(points, labels, distance, sigma, planes, n_segments):  # pragma: no cover - compiled
+def _gather_segments(points, labels, distance, sigma, planes, n_segments, stride):  # pragma: no cover - compiled
     """The valid labelled pixels grouped by label (row-major within each), with their noise along the normal.
 
     Returns ``starts`` (label k's pixels are ``starts[k]:starts[k + 1]``),
-    their rows and columns, ``sigma |cos(incidence)|`` per pixel (the
-    sigma itself where the segment has no plane; empty without ``sigma``)
-    and its sum of squares per label.
+    their points (float32) and ``(row, column)`` times ``stride`` (int32,
+    the full grid's pixel), ``sigma |cos(incidence)|`` per pixel (the sigma
+    itself where the segment has no plane; empty without ``sigma``) and its
+    sum of squares per label.
     """
     height, width = labels.shape
     counts = np.zeros(n_segments + 2, np.int64)
@@ -333,8 +336,8 @@ def _gather_segments(points, labels, distance, sigma, planes, n_segments):  # pr
                 counts[label + 1] += 1
     starts = np.cumsum(counts)
     total = starts[-1]
-    rows = np.empty(total, np.int64)
-    cols = np.empty(total, np.int64)
+    vertices = np.empty((total, 3), np.float32)
+    pixels = np.empty((total, 2), np.int32)
     with_sigma = sigma.shape[0] > 0
     along = np.empty(total if with_sigma else 0)
     squares = np.zeros(n_segments + 1)
@@ -346,7 +349,9 @@ def _gather_segments(points, labels, distance, sigma, planes, n_segments):  # pr
                 continue
             k = filled[label]
             filled[label] += 1
-            rows[k], cols[k] = i, j
+            for axis in range(3):
+                vertices[k, axis] = points[i, j, axis]
+            pixels[k, 0], pixels[k, 1] = i * stride, j * stride
             if with_sigma:
                 nx, ny, nz = planes[label, 0], planes[label, 1], planes[label, 2]
                 value = sigma[i, j]
@@ -355,7 +360,7 @@ def _gather_segments(points, labels, distance, sigma, planes, n_segments):  # pr
                     value *= cosine
                 along[k] = value
                 squares[label] += value * value
-    return starts, rows, cols, along, squares
+    return starts, vertices, pixels, along, squares
 
 
 def _denoised(along_normal: np.ndarray, residual: float, predicted: float) -> np.ndarray:
