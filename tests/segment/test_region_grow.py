@@ -47,6 +47,30 @@ def test_box_on_a_floor_gives_each_face():
     assert np.allclose(result.planes[box_label], [0, 0, -1, 2.0], atol=1e-3)
 
 
+def test_a_wall_seen_edge_on_does_not_take_the_crease_of_the_wall_it_meets():
+    """Boundary pixels go to the plane they fit in noise sigmas along its normal.
+
+    Range noise moves a point along its ray: off a wall seen at grazing
+    incidence by sigma |cos|, a few millimetres here. Compared by distance in
+    metres, the side wall took the first column of the frontal wall's
+    pixels at the crease (57-82 of 144 rows); in its own sigmas, it takes
+    a few.
+    """
+    front = on_plane((0, 0, -1), 3.0)
+    side = on_plane((1, 0, 0), 0.5)  # x = -0.5: incidence 66-80 degrees
+    on_side = (RAYS[..., 0] < 0) & (np.linalg.norm(side, axis=2) < np.linalg.norm(front, axis=2))
+    points = np.where(on_side[..., None], side, front)
+    sigma = 0.015
+    for seed in range(3):
+        noise = np.random.default_rng(seed).normal(0, sigma, SR3000.shape)
+        result = segment(points * (1 + noise / np.linalg.norm(points, axis=2))[..., None], sigma=sigma)
+        assert result.n_segments == 2
+        side_label = np.bincount(result.labels[on_side]).argmax()
+        taken = (~on_side & (result.labels == side_label)).sum()
+        assert taken < 0.25 * SR3000.shape[0], taken
+        assert (result.labels[on_side] == side_label).mean() > 0.95
+
+
 def test_planes_face_the_sensor_and_are_sorted_by_size():
     result = segment(on_plane((0.2, 0.1, -1), 2.5))
     assert result.n_segments == 1
@@ -105,7 +129,7 @@ def test_simulated_arena_after_denoising(sensor, frames):
 
 
 def test_raw_sr3000_planes_are_fitted_along_the_rays():
-    """Raw SR-3000 frames (range noise of centimetres): planes within a degree of the truth.
+    """Raw SR-3000 frames (range noise of centimetres): 95 % of the planes found, within a degree of the truth on average.
 
     A total least-squares fit of the same segments is off by about 4 degrees on
     average: it takes the noise along the rays for spread across the plane
@@ -113,10 +137,10 @@ def test_raw_sr3000_planes_are_fitted_along_the_rays():
     """
     from rangesurf.segment import segment_planes
 
-    frame_list, truths = simulate.simulate_sequence("arena", "sr3000", 3, seed=21)
     correct = total = 0
     angles = []
-    for frame, truth in zip(frame_list, truths):
+    scenes = [simulate.simulate_sequence(scene, "sr3000", 8, seed=21) for scene in ("arena", "corridor")]
+    for frame, truth in [pair for frame_list, truths in scenes for pair in zip(frame_list, truths)]:
         points = frame.points.astype(np.float32)
         sigma = frame.sensor.range_sigma(frame.range, frame.intensity)
         result = segment_planes(points, range_sigma=sigma, projection=frame.sensor.projection)
@@ -126,7 +150,8 @@ def test_raw_sr3000_planes_are_fitted_along_the_rays():
         correct += scores.correct
         total += scores.n_truth
         angles += scores.normal_errors_deg
-    assert correct >= total - 1  # 45 of 46 over the benchmark's 8 frames
+    # The issue's targets on the benchmark's frames (benchmarks/segmentation.py: 109 of 110, 0.90 degrees).
+    assert correct >= 0.95 * total, (correct, total)
     assert np.mean(angles) < 1.0, np.mean(angles)
 
 
@@ -292,7 +317,9 @@ def absorb_reference(points, distance, sigma, valid, labels, planes, distance_si
                 if abs(distance[qi, qj] - distance[i, j]) > depth_jump * min(distance[qi, qj], distance[i, j]):
                     continue
                 other = before[qi, qj]
-                gap = abs(planes[other, :3] @ points[i, j].astype(np.float64) + planes[other, 3])
+                along = planes[other, :3] @ points[i, j].astype(np.float64)
+                # In noise sigmas along the plane's normal: range noise moves a point along its ray.
+                gap = abs(along + planes[other, 3]) / max(abs(along) / distance[i, j], region_grow._MIN_INCIDENCE_COS)
                 if gap <= best_gap:
                     best, best_gap = other, gap
             labels[i, j] = best
