@@ -677,21 +677,13 @@ def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, c
         h = dx * axes[2, 0] + dy * axes[2, 1] + dz * axes[2, 2]
         column, row = np.int32(np.floor(u / cell_size)), np.int32(np.floor(v / cell_size))
         if slot < 0 or column != last_column or row != last_row:
-            slot = lookup(table_keys, table_slots, column, row, 0)
+            slot, count, is_updated, is_added = _cell_slot(column, row, coords, count, table_keys, table_slots, stamps,
+                                                           stamp, misses)
             if slot < 0:
-                if count >= coords.shape[0]:
-                    stop = k
-                    break
-                slot = count
-                count += 1
-                coords[slot, 0], coords[slot, 1], coords[slot, 2] = column, row, 0
-                insert(table_keys, table_slots, column, row, 0, slot)
-                stamps[slot] = stamp
-                added += 1
-            elif stamps[slot] != stamp:
-                stamps[slot] = stamp
-                updated += 1
-            misses[slot] = 0
+                stop = k
+                break
+            updated += is_updated
+            added += is_added
             last_column, last_row = column, row
         weight = 1.0 / max(noise[k] + fit[k] + registration[k], 1e-12)
         wu, wv, wh = weight * u, weight * v, weight * h
@@ -719,6 +711,33 @@ def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, c
     return stop, count, updated, added, rejected
 
 
+@numba.njit(**_JIT, inline="always")
+def _cell_slot(column, row, coords, count, table_keys, table_slots, stamps, stamp, misses):  # pragma: no cover - compiled
+    """The storage slot of cell (column, row), opened if new, and marked seen (``misses`` 0).
+
+    Returns (slot, cell count, updated, added): -1 as the slot when a new
+    cell finds the storage full; ``updated`` and ``added`` are 1 when this
+    call first touches an existing cell in this round (``stamp``) or opens
+    one, else 0.
+    """
+    slot = lookup(table_keys, table_slots, column, row, 0)
+    if slot < 0:
+        if count >= coords.shape[0]:
+            return -1, count, 0, 0
+        slot = count
+        coords[slot, 0], coords[slot, 1], coords[slot, 2] = column, row, 0
+        insert(table_keys, table_slots, column, row, 0, slot)
+        stamps[slot] = stamp
+        misses[slot] = 0
+        return slot, count + 1, 0, 1
+    updated = 0
+    if stamps[slot] != stamp:
+        stamps[slot] = stamp
+        updated = 1
+    misses[slot] = 0
+    return slot, count, updated, 0
+
+
 @numba.njit(**_JIT)
 def _accumulate_cells(columns, rows, table, start, coords, cells, count, table_keys, table_slots, stamps, stamp,
                       misses):  # pragma: no cover - compiled
@@ -732,20 +751,12 @@ def _accumulate_cells(columns, rows, table, start, coords, cells, count, table_k
     added = 0
     fields = table.shape[1]
     for k in range(start, columns.shape[0]):
-        slot = lookup(table_keys, table_slots, columns[k], rows[k], 0)
+        slot, count, is_updated, is_added = _cell_slot(columns[k], rows[k], coords, count, table_keys, table_slots, stamps,
+                                                       stamp, misses)
         if slot < 0:
-            if count >= coords.shape[0]:
-                return k, count, updated, added
-            slot = count
-            count += 1
-            coords[slot, 0], coords[slot, 1], coords[slot, 2] = columns[k], rows[k], 0
-            insert(table_keys, table_slots, columns[k], rows[k], 0, slot)
-            stamps[slot] = stamp
-            added += 1
-        elif stamps[slot] != stamp:
-            stamps[slot] = stamp
-            updated += 1
-        misses[slot] = 0
+            return k, count, updated, added
+        updated += is_updated
+        added += is_added
         for f in range(fields):
             cells[slot, f] += table[k, f]
     return columns.shape[0], count, updated, added
