@@ -86,10 +86,11 @@ _MAX_ANGLE = 20.0
 _DEPTH_JUMP = 0.05
 # Range noise moves a point along its ray, so off a plane by sigma |cos(incidence)|: a wall seen at grazing
 # incidence lets its points stray far less along its normal than their range noise. The boundary steps measure
-# a pixel's distance to each neighbouring plane in those units, the cosine floored here (72.5 degrees: beyond,
-# the plane's own tilt error, not the noise, dominates); metric distances gave a wall seen edge-on the first
-# column or two of a door jamb it meets (benchmarks/segmentation.py, 176x144 SR-3000 raw frames: correct
-# detections 105 -> 109 of 110; 103 -> 108 on the frames of seed 33).
+# a pixel's distance to each neighbouring plane in those units, the cosine floored here (about 72.5 degrees, so
+# that a plane seen nearly edge-on does not refuse its own pixels; of floors 0.1-0.5 on the benchmark's frames,
+# 0.3 found the most planes). Metric distances gave a wall seen edge-on the first column or two of a door jamb
+# it meets (benchmarks/segmentation.py, 176x144 SR-3000 raw frames: correct detections 105 -> 109 of 110;
+# 103 -> 108 on the frames of seed 33).
 _MIN_INCIDENCE_COS = 0.3
 # Neighbour offsets (row, column) for growing and for region adjacency.
 _FOUR = np.array([[0, 1], [1, 0], [0, -1], [-1, 0]], dtype=np.int64)
