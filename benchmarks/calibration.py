@@ -27,12 +27,14 @@ simulator's ground truth:
   tracked world covariance ``Sigma`` and ``J = [p x n, n]`` (what the model's
   UL3 carries for those points); drifting odometry. All pixels of a frame
   share one pose error and consecutive frames most of their drift, so a
-  sequence gives few independent draws: the column moves by points with
-  the odometry's seed (odometry seeds 5-6: SR-3000 arena 97.0-97.5 %,
-  corridor 99.5-99.6 %; Kinect arena 99.6-99.8 % over 50 frames, 98.4-99.7 %
-  over 100, corridor 96.5-97.0 %; SR-3000 arena over 200 frames, seeds 5-8,
-  98.3-98.7 %) and with the run's length, as the error and the tracked
-  covariance grow differently. The long run shows what model alignment
+  sequence gives few independent draws: one run's share moves by several
+  points with the seed (at the defaults, 100-frame SR-3000 corridor runs
+  held 83.6-97.0 % over seeds 5-9), and with the run's length, as the
+  error and the tracked covariance grow differently. The column therefore
+  pools the runs of odometry (and sensor noise) seeds 5-9, and gives the
+  range of single runs beside it. The ICP variance scale and its power of
+  the registration step (`rangesurf.pipeline`) were fitted on seeds 5-7
+  and checked on 8-9. The long run shows what model alignment
   does to UL3 (`GlobalModel.align`): while its covariance counted the
   patches placed by the same drifting poses as independent, it shrank at
   every alignment and the last third of that run held 47-60 % of its
@@ -70,17 +72,19 @@ _TRUSTED = PipelineConfig(register=RegisterSettings(odometry_sigma_rotation=1e-7
                                                     odometry_sigma_relative=0.0))
 # Pixels per frame scored for UL3 (every n-th segmented pixel).
 _UL3_SAMPLE = 7
+# Odometry and sensor-noise seeds whose runs the UL3 column pools (the first is the run every other column uses).
+_UL3_SEEDS = (5, 6, 7, 8, 9)
 # Model cells between a vertex scored for UL1 and any other true surface.
 _INTERIOR_MARGIN_CELLS = 3
 
 
-def run(scene: str, sensor: str, count: int, *, exact: bool):
+def run(scene: str, sensor: str, count: int, *, exact: bool, seed: int = _UL3_SEEDS[0]):
     """The sequence through a `Pipeline`; returns it, its true poses and the UL3 samples (|error|, sigma)."""
     true_poses = simulate.default_trajectory(scene, count, frame_rate=get_sensor(sensor).frame_rate)
-    odometry = true_poses if exact else simulate.noisy_odometry(true_poses, seed=5)
+    odometry = true_poses if exact else simulate.noisy_odometry(true_poses, seed=seed)
     pipeline = Pipeline(_TRUSTED if exact else None)
     errors, sigmas = [], []
-    for k, (frame, _) in enumerate(simulate.iter_sequence(scene, sensor, count, seed=5, trajectory=true_poses)):
+    for k, (frame, _) in enumerate(simulate.iter_sequence(scene, sensor, count, seed=seed, trajectory=true_poses)):
         result = pipeline.process(dataclasses.replace(frame, pose=odometry[k]))
         if k == 0 or exact:
             continue
@@ -219,7 +223,7 @@ def main() -> None:
              f"{n_frames} frames per sequence (Kinect: half as many; the last run twice as many), default pipeline. Coverage: share of errors "
              "within +-2 sigma, each level against the error it describes (see the script's notes): UL1 (vertices "
              "inside a true plane, 3 cells from any other surface) and UL1+UL2 (every vertex) on a run with the true "
-             "poses, UL3 per frame on a run from drifting odometry, UL4 at 10 % of "
+             "poses, UL3 per frame on runs from drifting odometry (pooled over seeds 5-9; in brackets the range of single runs), UL4 at 10 % of "
              "the vertices, *combined* (root sum of squares of UL1-UL3) on the final, full-resolution model of the drifting run. "
              "Calibrated: 90-98 %.", "",
              "| scene | sensor | frames | UL1 | UL1+UL2 | UL3 | UL4 | combined | vertices | error median / p95 (mm) "
@@ -241,6 +245,11 @@ def main() -> None:
         with_fit = np.mean(error <= 2 * np.hypot(levels["UL1"], levels["UL2"]))
 
         drifting, (ul3_error, ul3_sigma) = run(scene, sensor, count, exact=False)
+        inside = [ul3_error <= 2 * ul3_sigma]
+        for seed in _UL3_SEEDS[1:]:
+            _, (more_error, more_sigma) = run(scene, sensor, count, exact=False, seed=seed)
+            inside.append(more_error <= 2 * more_sigma)
+        ul3 = f"{np.mean(np.concatenate(inside)):.1%} ({min(map(np.mean, inside)):.1%}-{max(map(np.mean, inside)):.1%})"
         surfaces = drifting.finish()
         ul4_error, ul4_sigma = lod_samples(surfaces)
         # The full-resolution model, where UL4 is 0.
@@ -248,7 +257,7 @@ def main() -> None:
         combined = np.mean(error <= 2 * np.sqrt(levels["UL1"] ** 2 + levels["UL2"] ** 2 + levels["UL3"] ** 2))
         medians = [1e3 * np.median(levels[level]) for level in ("UL1", "UL2", "UL3")]
         lines.append(
-            f"| {scene} | {sensor} | {count} | {sensor_only:.1%} | {with_fit:.1%} | {np.mean(ul3_error <= 2 * ul3_sigma):.1%} "
+            f"| {scene} | {sensor} | {count} | {sensor_only:.1%} | {with_fit:.1%} | {ul3} "
             f"| {np.mean(ul4_error <= 2 * ul4_sigma):.1%} | {combined:.1%} | {len(error):,} "
             f"| {1e3 * np.median(error):.1f} / {1e3 * np.percentile(error, 95):.1f} "
             f"| {medians[0]:.2f} / {medians[1]:.2f} / {medians[2]:.2f} |")

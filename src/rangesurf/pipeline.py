@@ -56,6 +56,13 @@ STAGES = ("denoise", "segment", "surfaces", "register", "merge", "volume", "defe
 # more points than they need).
 _DENSE_FRAME = 200_000
 _CHECKPOINT_VERSION = 1
+# ICP's variance scale (`register.icp_variance_scale`, per full-resolution pixel) is divided by the
+# registration grid's step to this power. Residuals err alike over a patch of pixels: at step 1 every
+# pixel of it counts, thinned by s in both directions about 1 / s^2 of them would, if the patch were
+# much wider than s. It is not much wider, so the power lies between 1 and 2: fitted with the scale on
+# simulated sequences (benchmarks/calibration.py; 640x480 Kinect, step 3: at the power 1 (scale 10),
+# +-2 sigma held 98.1-99.9 % of the pose errors, at 1.4 (about 4.3) 91-96 %).
+_ICP_STEP_EXPONENT = 1.4
 # Frames between re-meshing the changed patches while a viewer shows them (run.remesh_every unset).
 _LIVE_REMESH_EVERY = 25
 # Time (ms) a frame must have left for handing freed memory back (malloc_trim: about 1-5 ms at 300 MB).
@@ -250,7 +257,7 @@ class Pipeline:
 
         # ICP's residuals are correlated over a patch of the full-resolution grid; on a thinned grid
         # neighbours lie further apart and err less alike (calibrated: benchmarks/calibration.py).
-        self.tracker.icp_variance_scale = self.config.register.icp_variance_scale / step
+        self.tracker.icp_variance_scale = self.config.register.icp_variance_scale / step**_ICP_STEP_EXPONENT
         normals = shared_normals if shared_normals is not None else estimate_normals(
             icp_points, projection=icp_projection, range_sigma=icp_sigma)
         if icp_projection is None:

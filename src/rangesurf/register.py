@@ -556,7 +556,7 @@ class FrameTracker:
         keyframe_distance: float = 0.3,
         keyframe_angle: float = 10.0,
         method: str = "point_to_plane",
-        icp_variance_scale: float = 30.0,
+        icp_variance_scale: float = 20.0,
     ) -> None:
         if method not in ICP_METHODS:
             raise ValueError(f"method must be one of {ICP_METHODS}, got {method!r}")
