@@ -522,14 +522,13 @@ class FrameTracker:
         `icp`'s covariance, which counts every residual as independent. A
         denoised frame's residuals are not: smoothing makes neighbours err
         alike, and the keyframe's own noise is shared by every frame
-        registered to it. 30 is calibrated for every pixel of a frame
-        (the pipeline divides it by its decimation step, as thinned
-        neighbours err less alike) on simulated SR-3000 and Kinect
-        sequences, where +-2 sigma then holds 96.5-99.8 % of the tracked
-        poses' errors along the surface normals (``benchmarks/calibration.py``:
-        conservative on some scenes, as keyframe steps' errors partly cancel;
-        single registrations' normalised squared errors have medians of
-        4.3-6.8 for 6 expected). It weighs ICP against the prior and
+        registered to it. 20 is calibrated for every pixel of a frame
+        (the pipeline divides it by its registration step to the power
+        1.4, as thinned neighbours err less alike) on simulated SR-3000
+        and Kinect sequences, where +-2 sigma then holds 92.8-98.1 % of the
+        tracked poses' errors along the surface normals, pooled over
+        odometry seeds 5-9 (``benchmarks/calibration.py``; single runs
+        83.6-99.7 %: a run gives few independent pose errors). It weighs ICP against the prior and
         sets the tracked covariance, hence the model's UL3.
 
     Examples
