@@ -161,9 +161,22 @@ def denoising_quality(settings: dict, frames: list, truths: list) -> list[dict]:
 
 
 def machine_description() -> str:
+    """Architecture, processor model (where the system names it), cores and Python: what a benchmark ran on.
+
+    The model matters: a table from one machine and a table from another
+    differ by more than load does (an AMD EPYC virtual machine ran the same
+    scripts about half as fast as the machine before it, its peers as well).
+    """
     import os
 
-    return f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, Python {platform.python_version()}"
+    processor = ""
+    try:
+        with open("/proc/cpuinfo") as stream:
+            processor = next((line.split(":", 1)[1].strip() for line in stream if line.startswith("model name")), "")
+    except OSError:
+        pass  # not Linux: the architecture alone
+    named = f"{platform.machine()} ({processor})" if processor else (platform.processor() or platform.machine())
+    return f"{named}, {os.cpu_count()} cores, Python {platform.python_version()}"
 
 
 def run_foundation_benchmarks(data_root: Path) -> dict:
