@@ -223,7 +223,8 @@ def main() -> None:
              f"{n_frames} frames per sequence (Kinect: half as many; the last run twice as many), default pipeline. Coverage: share of errors "
              "within +-2 sigma, each level against the error it describes (see the script's notes): UL1 (vertices "
              "inside a true plane, 3 cells from any other surface) and UL1+UL2 (every vertex) on a run with the true "
-             "poses, UL3 per frame on runs from drifting odometry (pooled over seeds 5-9; in brackets the range of single runs), UL4 at 10 % of "
+             "poses, UL3 per frame on runs from drifting odometry (pooled over seeds 5-9; in brackets the range of "
+             "single runs), UL4 at 10 % of "
              "the vertices, *combined* (root sum of squares of UL1-UL3) on the final, full-resolution model of the drifting run. "
              "Calibrated: 90-98 %.", "",
              "| scene | sensor | frames | UL1 | UL1+UL2 | UL3 | UL4 | combined | vertices | error median / p95 (mm) "

@@ -528,8 +528,9 @@ class FrameTracker:
         and Kinect sequences, where +-2 sigma then holds 92.8-98.1 % of the
         tracked poses' errors along the surface normals, pooled over
         odometry seeds 5-9 (``benchmarks/calibration.py``; single runs
-        83.6-99.7 %: a run gives few independent pose errors). It weighs ICP against the prior and
-        sets the tracked covariance, hence the model's UL3.
+        83.6-99.7 %: a run gives few independent pose errors). It weighs
+        ICP against the prior and sets the tracked covariance, hence the
+        model's UL3.
 
     Examples
     --------
