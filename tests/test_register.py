@@ -539,6 +539,36 @@ def test_a_corrected_pose_carries_on_to_the_next_frames():
         FrameTracker().correct(np.eye(4), np.eye(6))
 
 
+def test_a_correction_counts_each_registration_once():
+    """The frames after a corrected one add their own registration to the keyframe's covariance, not the corrected
+    frame's as well: a correction that measured nothing (same pose, same covariance) leaves the track exactly as
+    without it, and one that pins the frame down leaves the keyframe what a linear Gaussian model has it know."""
+    from rangesurf.register import FrameTracker
+
+    target, normals = _corner(np.random.default_rng(5))
+
+    def frame(k):
+        odometry = np.eye(4)
+        odometry[0, 3] = 0.02 * k
+        return target - [0.02 * k, 0.0, 0.0], odometry
+
+    trackers = [FrameTracker(keyframe_distance=0.03) for _ in range(3)]
+    for tracker in trackers:
+        for k in range(4):  # frame 2 is a keyframe (4 cm from frame 0); frame 3 registers onto it
+            tracked = tracker.track(frame(k)[0], normals, odometry=frame(k)[1])
+    key_covariance, frame_covariance = trackers[0]._keyframe[3], tracked.covariance
+    assert np.trace(key_covariance) > 0 and np.trace(frame_covariance) > np.trace(key_covariance)
+    trackers[1].correct(tracked.T_world_sensor, frame_covariance)
+    trackers[2].correct(tracked.T_world_sensor, np.zeros((6, 6)))
+    plain, unchanged, pinned = (tracker.track(frame(4)[0], normals, odometry=frame(4)[1]) for tracker in trackers)
+    np.testing.assert_allclose(unchanged.covariance, plain.covariance, rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(unchanged.T_world_sensor, plain.T_world_sensor, atol=1e-12)
+    # Pinned: the keyframe keeps K - K P^-1 K (its error given the frame's), the next frame adds its registration.
+    known = key_covariance - key_covariance @ np.linalg.inv(frame_covariance) @ key_covariance
+    np.testing.assert_allclose(pinned.covariance - pinned.step_covariance, known, atol=1e-12)
+    assert 0 < np.trace(known) < np.trace(key_covariance)
+
+
 def test_tracker_with_range_sigmas_tracks_and_resumes_from_its_state():
     """FrameTracker.track(range_sigma=): noise-weighted ICP against the keyframe's sigmas, within 0.2 degrees and
     1 cm of the true motion each frame; a tracker restored from its state (the keyframe's sigmas included) goes on

@@ -86,7 +86,7 @@ class RegisterSettings:
     keyframe_distance: float = 0.3
     keyframe_angle: float = 10.0
     decimate: int | None = None
-    icp_variance_scale: float = 20.0
+    icp_variance_scale: float = 26.0
     align_to_model_every: int = 10
 
 

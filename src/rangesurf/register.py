@@ -522,13 +522,13 @@ class FrameTracker:
         `icp`'s covariance, which counts every residual as independent. A
         denoised frame's residuals are not: smoothing makes neighbours err
         alike, and the keyframe's own noise is shared by every frame
-        registered to it. 20 is calibrated for every pixel of a frame
+        registered to it. 26 is calibrated for every pixel of a frame
         (the pipeline divides it by its registration step to the power
         1.4, as thinned neighbours err less alike) on simulated SR-3000
-        and Kinect sequences, where +-2 sigma then holds 92.8-98.1 % of the
+        and Kinect sequences, where +-2 sigma then holds 90.6-98.0 % of the
         tracked poses' errors along the surface normals, pooled over
         odometry seeds 5-9 (``benchmarks/calibration.py``; single runs
-        83.6-99.7 %: a run gives few independent pose errors). It weighs
+        78.1-99.9 %: a run gives few independent pose errors). It weighs
         ICP against the prior and sets the tracked covariance, hence the
         model's UL3.
 
@@ -556,7 +556,7 @@ class FrameTracker:
         keyframe_distance: float = 0.3,
         keyframe_angle: float = 10.0,
         method: str = "point_to_plane",
-        icp_variance_scale: float = 20.0,
+        icp_variance_scale: float = 26.0,
     ) -> None:
         if method not in ICP_METHODS:
             raise ValueError(f"method must be one of {ICP_METHODS}, got {method!r}")
@@ -698,8 +698,14 @@ class FrameTracker:
         """Move the last tracked pose to a corrected one (e.g. `rangesurf.merge.GlobalModel.align`).
 
         The keyframe moves with it, by the same rigid correction, so that
-        the frames that follow continue from the corrected pose; both take
-        the corrected covariance.
+        the frames that follow continue from the corrected pose. Its
+        covariance is conditioned on the correction as a linear Gaussian
+        model has it: the frame's pose is the keyframe's plus this frame's
+        registration, so the keyframe's covariance ``K`` shrinks by
+        ``G (P - P') G^T`` with ``G = K P^-1``, ``P`` and ``P'`` the frame's
+        covariance before and after. The frames that follow add their own
+        registration to that; a correction that measured nothing changes
+        nothing.
         """
         if self._keyframe is None:
             raise ValueError("correct() needs a tracked frame first")
@@ -708,12 +714,21 @@ class FrameTracker:
         if covariance.shape != (6, 6) or np.isnan(covariance).any():
             raise ValueError(f"covariance must be a 6x6 matrix without NaN, got shape {covariance.shape}")
         correction = pose @ np.linalg.inv(self.pose)
-        key_points, key_normals, key_pose, _, key_sigma = self._keyframe
-        self._keyframe = (key_points, key_normals, correction @ key_pose, covariance.copy(), key_sigma)
+        key_points, key_normals, key_pose, key_covariance, key_sigma = self._keyframe
+        if np.isfinite(self.covariance).all() and np.isfinite(key_covariance).all():
+            # Handing the keyframe the frame's whole corrected covariance instead counted this frame's
+            # registration again in every frame after it: one registration's worth more per alignment, so
+            # the pose's uncertainty grew with how often the model was aligned to.
+            gain = key_covariance @ np.linalg.pinv(self.covariance)
+            key_covariance = key_covariance - gain @ (self.covariance - covariance) @ gain.T
+            key_covariance = 0.5 * (key_covariance + key_covariance.T)
+        else:
+            # An unconstrained direction (inf) has no linear model to condition: the keyframe takes the
+            # corrected covariance, and the motion from it counts as known.
+            key_covariance = covariance.copy()
+            self._relative_covariance = np.zeros((6, 6))
+        self._keyframe = (key_points, key_normals, correction @ key_pose, key_covariance, key_sigma)
         self.pose, self.covariance = pose.copy(), covariance.copy()
-        # The keyframe now carries all of the pose's uncertainty: counting the motion's from it again
-        # would count it twice.
-        self._relative_covariance = np.zeros((6, 6))
 
     def state(self) -> dict[str, np.ndarray]:
         """Everything `track` needs to continue, as arrays (for checkpoints; see `restore`)."""
