@@ -47,9 +47,9 @@ PERIOD = 1.0 / 25.0
 
 
 def model_state(model) -> SimpleNamespace:
-    """What `Viewer.update` reads of the model, frozen after one frame (for the replay)."""
-    return SimpleNamespace(model=SimpleNamespace(patches=list(model.patches), others=list(model.others),
-                                                 _meshes=dict(model._meshes)))
+    """What `Viewer.update` reads of the model (its meshed surfaces), frozen after one frame (for the replay)."""
+    surfaces = model.meshed_surfaces()
+    return SimpleNamespace(model=SimpleNamespace(meshed_surfaces=lambda: surfaces))
 
 
 class Browser:
@@ -79,8 +79,9 @@ class Browser:
 
 
 def record(frames) -> list:
-    """Each frame's result with the model's state after it (the pipeline re-meshes every 25 frames, its default)."""
+    """Each frame's result with the model's state after it (the pipeline re-meshes every 25 frames, as for a viewer)."""
     pipeline = Pipeline()
+    pipeline.live_meshes = True  # as `rangesurf run --view` has it
     return [(pipeline.process(frame), model_state(pipeline.model)) for frame in frames]
 
 
@@ -115,6 +116,7 @@ def replay(recorded, browser: Browser | None, *, paced: bool) -> dict:
 def live(frames, viewer, browser: Browser | None) -> dict:
     """The pipeline paced to 25 fps with ``viewer`` taking every frame."""
     pipeline = Pipeline()
+    pipeline.live_meshes = isinstance(viewer, Viewer)  # re-meshing while the run goes on is for a viewer
     if browser and isinstance(viewer, Viewer):
         browser.open(viewer.url)
         rendered = browser.frames()

@@ -39,6 +39,7 @@ import math
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from rangesurf.mesh import UNCERTAINTY_LEVELS, Surface, boundary_loops
@@ -56,6 +57,7 @@ LEVEL_COLOURS = {
     "UL4": (204, 121, 167, 255),  # purple: level of detail
 }
 _SHELL_ALPHA = 90
+_JIT = dict(cache=True, nogil=True, error_model="numpy")
 
 
 @dataclass(frozen=True)
@@ -196,17 +198,15 @@ def displaced_points(surface: Surface, levels: tuple[str, ...] = UNCERTAINTY_LEV
     shaped = reference * (amounts / reference) ** falloff
     rng = np.random.default_rng(seed)
     factor = rng.uniform(0.0, 1.0, (2,) + shaped.shape) if random else np.ones((2,) + shaped.shape)
-    normals = _unit_normals(surface)
-    vertices = surface.vertices.astype(np.float64)
     # (side, vertex, level) -> points on the + side, then the - side.
     offsets = np.stack([factor[0] * shaped, -factor[1] * shaped]) * scale
-    points = vertices[None, :, None, :] + offsets[..., None] * normals[None, :, None, :]
+    points = _along_normals(surface.vertices, _unit_normals(surface), offsets)
     if mode == "cumulative":
         colours = hue_colours(amounts[:, 0], vmax=reference)
         colours = np.concatenate([colours, colours])
     else:
         colours = np.tile(np.array([LEVEL_COLOURS[level] for level in levels], np.uint8), (2 * surface.n_vertices, 1))
-    return Glyphs(points=points.reshape(-1, 3).astype(np.float32), colours=colours)
+    return Glyphs(points=points.reshape(-1, 3), colours=colours)
 
 
 def bars(surface: Surface, levels: tuple[str, ...] = UNCERTAINTY_LEVELS, *, scale: float = 2.0,
@@ -229,15 +229,29 @@ def bars(surface: Surface, levels: tuple[str, ...] = UNCERTAINTY_LEVELS, *, scal
     lengths = level_values(surface, levels) * scale
     ends = np.cumsum(lengths, axis=1) if mode == "stacked" else lengths
     starts = ends - lengths if mode == "stacked" else np.zeros_like(lengths)
-    normals = _unit_normals(surface)
-    vertices = surface.vertices.astype(np.float64)
-    segments = []
-    for side in (1.0, -1.0):
-        begin = vertices[:, None, :] + side * starts[..., None] * normals[:, None, :]
-        end = vertices[:, None, :] + side * ends[..., None] * normals[:, None, :]
-        segments.append(np.stack([begin, end], axis=2))
+    # (side, vertex, level and end): each bar from its start to its end, on the + side, then the - side.
+    distances = np.stack([starts, ends], axis=-1).reshape(surface.n_vertices, -1)
+    segments = _along_normals(surface.vertices, _unit_normals(surface), np.stack([distances, -distances]))
     colours = np.tile(np.array([LEVEL_COLOURS[level] for level in levels], np.uint8), (2 * surface.n_vertices, 1))
-    return Glyphs(segments=np.concatenate(segments).reshape(-1, 2, 3).astype(np.float32), colours=colours)
+    return Glyphs(segments=segments.reshape(-1, 2, 3), colours=colours)
+
+
+@numba.njit(**_JIT)
+def _along_normals(vertices, normals, distances):  # pragma: no cover - compiled
+    """(A, N, B, 3) float32: vertex i moved ``distances[a, i, b]`` along its normal.
+
+    One pass writing float32, what the viewer takes: NumPy's broadcast over the three coordinates (inner loops
+    three values long) in float64 temporaries took 100,000 vertices' stacked bars 118 ms, the separate displaced
+    points 68, where the target for any method is well under 100 (this machine; in place, in float32, 67 and 50).
+    """
+    sides, count, inner = distances.shape
+    points = np.empty((sides, count, inner, 3), np.float32)
+    for a in range(sides):
+        for i in range(count):
+            for b in range(inner):
+                for axis in range(3):
+                    points[a, i, b, axis] = vertices[i, axis] + distances[a, i, b] * normals[i, axis]
+    return points
 
 
 def shells(surface: Surface, levels: tuple[str, ...] = UNCERTAINTY_LEVELS, *, scale: float = 2.0) -> tuple[Glyphs, Glyphs]:
