@@ -525,14 +525,13 @@ class FrameTracker:
         registered to it. 26 is calibrated for every pixel of a frame
         (the pipeline divides it by its registration step to the power
         1.4, as thinned neighbours err less alike) on simulated SR-3000
-        and Kinect sequences, where +-2 sigma then holds 90.6-98.0 % of the
-        tracked poses' errors along the surface normals, pooled over
-        odometry seeds 5-9 (``benchmarks/calibration.py``; single runs
-        78.1-99.9 %: a run gives few independent pose errors; held-out
-        seeds 10-14 pooled 89.7-99.6 %: the arena is covered more than the
-        corridor at any one scale). It weighs
-        ICP against the prior and sets the tracked covariance, hence the
-        model's UL3.
+        and Kinect sequences (fitted on odometry seeds 5-9), where +-2
+        sigma then holds 90.8-98.8 % of the tracked poses' errors along the
+        surface normals, pooled over seeds 5-14 (``benchmarks/calibration.py``;
+        single runs 78.1-99.9 %: a run gives few independent pose errors;
+        the arena is covered more than the corridor at any one scale). It
+        weighs ICP against the prior and sets the tracked covariance, hence
+        the model's UL3.
 
     Examples
     --------
