@@ -148,19 +148,23 @@ def test_aligning_to_the_model_bounds_the_drift_of_a_long_run():
             if every and len(errors) > 1:
                 covered.append(_normal_errors_within_2_sigma(frame, result, pose))
         late[every] = np.array(errors[500:])
-    # Measured per third: 97.4, 99.1, 100 % (97.1, 100, 100 % while a correction counted the frame's registration
+    # Measured per third: 96.1, 100, 100 % (97.4, 99.1, 100 % with a new keyframe at 5 points of overlap lost, 91.0,
+    # 83.5, 100 % at 15; 97.1, 100, 100 % while a correction counted the frame's registration
     # twice, ICP's variance scale at 20; 98.7, 99.9, 100 % with that and the scale at 30; 98.7, 80.3, 100 %
     # while a segment's fit residual stretched the reach it joined patches by; on odometry seeds 6 and 7 the middle
     # third held 67 % while the drift along unconstrained directions grew once per keyframe).
     assert min(np.mean(third) for third in np.array_split(covered, 3)) >= 0.9
-    # Measured: 12.6 (at most 16.7) against 29.2 mm (11.0 and 16.0 against 29.5 while a correction counted the
+    # Measured: 10.6 (at most 13.2) against 18.5 mm (12.6 and 16.7 against 29.2 with a new keyframe at 5 points of
+    # overlap lost; 11.0 and 16.0 against 29.5 while a correction counted the
     # frame's registration twice; 10.6 and 14.9 against 29.3 with that and ICP's variance scale at 30).
     # Before: 17.0 while the alignments shrank the covariance as if the patches were independent of the pose; 15.6
     # while the drift along unconstrained directions grew once per keyframe (the covariance is the alignment's prior:
     # larger, it lets a correction pull more); 13.7 while a segment's fit residual stretched the reach it joined
     # patches by (a floor grown into the ramp tilted the ramp's patch 2.4 degrees, which pulled the aligned poses
-    # off). Odometry seeds 6 and 7: ratios 0.54, 0.55.
-    assert late[10].mean() < 0.5 * late[0].mean()
+    # off). Odometry seeds 6 and 7: ratios 0.54, 0.55 (keyframes at 5 points of overlap lost). The chain alone got
+    # better with keyframes kept longer: the ratio is now 0.57.
+    assert late[10].mean() < 0.65 * late[0].mean()
+    assert late[10].mean() < 0.0125
     assert late[10].max() < 0.02
 
 

@@ -400,6 +400,40 @@ def test_tracker_meets_per_frame_accuracy_from_noisy_odometry(scene):
     assert np.trace(tracked[-1].covariance) > np.trace(tracked[1].covariance) > 0
 
 
+def test_a_new_keyframe_once_the_paired_share_drops_by_the_overlap_loss():
+    """On a turning SR-3000 arena sequence, a frame becomes the keyframe exactly when the share of its points
+    ICP paired has fallen by ``keyframe_overlap_loss`` below the first registration's onto the current keyframe
+    (or it moved or turned too far from it); a larger loss keeps each keyframe longer."""
+    frames, _ = simulate.simulate_sequence("arena", "sr3000", 40, seed=5)
+    switches = {loss: _keyframe_switches(frames, loss) for loss in (0.05, 0.15)}
+    assert switches[0.15] >= 1 and switches[0.15] < switches[0.05]
+
+
+def _keyframe_switches(frames, loss: float) -> int:
+    from rangesurf.register import FrameTracker
+
+    tracker = FrameTracker(keyframe_overlap_loss=loss)
+    first_share, switches = None, 0
+    for frame in frames:
+        key_pose = tracker.state().get("key_pose")
+        points = frame.points.astype(np.float32)
+        normals = estimate_normals(points, projection=frame.sensor.projection)
+        tracked = tracker.track(points, normals, projection=frame.sensor.projection)
+        if key_pose is None:
+            continue
+        share = tracked.registration.inlier_fraction
+        first_share = share if first_share is None else first_share
+        motion = np.linalg.inv(key_pose) @ tracked.T_world_sensor
+        turned = np.degrees(np.arccos(np.clip((np.trace(motion[:3, :3]) - 1) / 2, -1, 1)))
+        expected = (share < first_share - loss or np.linalg.norm(motion[:3, 3]) >= tracker.keyframe_distance
+                    or turned >= tracker.keyframe_angle)
+        switched = not np.array_equal(tracker.state()["key_pose"], key_pose)
+        assert switched == expected
+        if switched:
+            switches, first_share = switches + 1, None
+    return switches
+
+
 def _corridor(rng, count=6000):
     """Two long parallel walls and a floor: nothing fixes translation (and nothing else) along x."""
     a = rng.uniform(-5, 5, count)

@@ -145,6 +145,9 @@ def test_bad_config_files_name_the_key(tmp_path):
     path.write_text("[run]\non_bad_frame = 'ignore'\n")
     with pytest.raises(ConfigError, match="run.on_bad_frame must be one of skip, stop"):
         PipelineConfig.load(path)
+    path.write_text("[register]\nkeyframe_overlap_loss = 1.5\n")
+    with pytest.raises(ConfigError, match="register.keyframe_overlap_loss must be between 0 and 1, got 1.5"):
+        PipelineConfig.load(path)
     path.write_text("[run\n")
     with pytest.raises(ConfigError, match="not valid TOML"):
         PipelineConfig.load(path)

@@ -70,7 +70,8 @@ class RegisterSettings:
     ``decimate``: register on every n-th row and column (None: from 200,000
     pixels on, the grid segmentation grows on -- 3 at 640x480 -- else 1):
     ICP needs far fewer points than a depth camera gives. ``icp_variance_scale``: how much ICP's independent-residual
-    covariance understates its error (see `FrameTracker`).
+    covariance understates its error (see `FrameTracker`). ``keyframe_overlap_loss``: a new keyframe once the share
+    of points ICP pairs has dropped this much (see `FrameTracker`).
     ``odometry_sigma_rotation`` (radians) and ``odometry_sigma_translation``
     (metres): the odometry's error per frame and axis at a standstill, plus
     ``odometry_sigma_relative`` times the step's own angle and length.
@@ -85,6 +86,7 @@ class RegisterSettings:
     odometry_sigma_relative: float = 0.1
     keyframe_distance: float = 0.3
     keyframe_angle: float = 10.0
+    keyframe_overlap_loss: float = 0.10
     decimate: int | None = None
     icp_variance_scale: float = 26.0
     align_to_model_every: int = 10
@@ -192,6 +194,9 @@ class PipelineConfig:
                      "merge.bridge"):
             if self._get(name) is not None and self._get(name) < 0:
                 raise ConfigError(f"config: {name} must be >= 0, got {self._get(name)}")
+        if not 0 <= self.register.keyframe_overlap_loss <= 1:
+            raise ConfigError(f"config: register.keyframe_overlap_loss must be between 0 and 1, got "
+                              f"{self.register.keyframe_overlap_loss}")
         if self.merge.min_overlap < 1:
             raise ConfigError(f"config: merge.min_overlap must be >= 1, got {self.merge.min_overlap}")
 

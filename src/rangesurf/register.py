@@ -64,8 +64,6 @@ _DEGENERATE_RATIO = 1e-3
 _HALF_SOURCE = 20_000
 # ... and from this many on, the coarsest every eighth.
 _DENSE_SOURCE = 100_000
-# A new keyframe once the share of paired points drops this far below the keyframe's first registration.
-_KEYFRAME_OVERLAP_LOSS = 0.05
 # Floor of (n . u)^2, the squared cosine between a target normal and a line of sight, in the variance of a
 # point-to-plane residual from range noise: towards grazing incidence the range noise along the normal vanishes,
 # but the normal's own error and the pixel's footprint on the surface do not (the floor is reached 80 degrees
@@ -487,9 +485,10 @@ class FrameTracker:
     odometry poses, else from the previous motion (constant velocity). A
     frame becomes the next keyframe once it has moved ``keyframe_distance``
     or turned ``keyframe_angle`` from the current one, once the share of its
-    points ICP could pair has dropped by 5 points since the keyframe's first
-    registration (the views overlap less), or when ICP failed, so
-    registration errors add up once per keyframe rather than once per frame.
+    points ICP could pair has dropped by ``keyframe_overlap_loss`` since the
+    keyframe's first registration (the views overlap less), or when ICP
+    failed, so registration errors add up once per keyframe rather than once
+    per frame.
     Where ICP cannot see a direction -- a corridor along its axis, a single
     wall -- the prior's motion is kept in that direction and its
     uncertainty enters the covariance, so a degenerate scene hands over to
@@ -516,6 +515,19 @@ class FrameTracker:
     keyframe_distance, keyframe_angle : float
         Metres and degrees of motion from the keyframe that make a new one
         (0: every frame is a keyframe, plain frame-to-frame tracking).
+    keyframe_overlap_loss : float
+        A new keyframe once the share of the frame's points ICP pairs has
+        dropped this much (0-1) below the first frame's after the keyframe.
+        Every new keyframe adds a registration's error to the chain, and its
+        covariance: at 0.05 a turning sensor took a new keyframe every 8
+        frames (simulated SR-3000 arena), and the covariance grew faster
+        than the error, which consecutive keyframes partly cancel. At 0.10,
+        on simulated runs from drifting odometry (RMS position error, mean
+        over odometry seeds 5-14, 0.05 -> 0.10): SR-3000 corridor 4.9 -> 3.5
+        mm, arena 5.0 -> 4.7 (200 frames: 5.3 -> 5.5), Kinect arena 0.42 ->
+        0.39, corridor 0.59 -> 0.49; the 600-frame arena's last 100 frames
+        without model alignment 29 -> 19 mm. 0.15 tracked about as well,
+        but its covariance fell short on the 600-frame run (a third 84 %).
     method : {"point_to_plane", "point_to_point"}
     icp_variance_scale : float
         How many times larger the true variance of ICP's motion is than
@@ -524,7 +536,7 @@ class FrameTracker:
         alike, and the keyframe's own noise is shared by every frame
         registered to it. 26 is calibrated for every pixel of a frame
         (the pipeline divides it by its registration step to the power
-        1.4, as thinned neighbours err less alike) on simulated SR-3000
+        1.2, as thinned neighbours err less alike) on simulated SR-3000
         and Kinect sequences (fitted on odometry seeds 5-9), where +-2
         sigma then holds 90.8-98.8 % of the tracked poses' errors along the
         surface normals, pooled over seeds 5-14 (``benchmarks/calibration.py``;
@@ -556,6 +568,7 @@ class FrameTracker:
         odometry_relative: float = 0.1,
         keyframe_distance: float = 0.3,
         keyframe_angle: float = 10.0,
+        keyframe_overlap_loss: float = 0.10,
         method: str = "point_to_plane",
         icp_variance_scale: float = 26.0,
     ) -> None:
@@ -567,6 +580,8 @@ class FrameTracker:
             raise ValueError(f"odometry_relative must be finite and >= 0, got {odometry_relative!r}")
         if not (keyframe_distance >= 0 and keyframe_angle >= 0):
             raise ValueError("keyframe_distance and keyframe_angle must be >= 0")
+        if not 0 <= keyframe_overlap_loss <= 1:
+            raise ValueError(f"keyframe_overlap_loss must be a share between 0 and 1, got {keyframe_overlap_loss!r}")
         if not (math.isfinite(icp_variance_scale) and icp_variance_scale > 0):
             raise ValueError(f"icp_variance_scale must be finite and > 0, got {icp_variance_scale!r}")
         self.icp_variance_scale = float(icp_variance_scale)
@@ -574,6 +589,7 @@ class FrameTracker:
         self.method = method
         self.keyframe_distance = float(keyframe_distance)
         self.keyframe_angle = float(keyframe_angle)
+        self.keyframe_overlap_loss = float(keyframe_overlap_loss)
         self.odometry_sigma = (float(odometry_sigma[0]), float(odometry_sigma[1]))
         self.odometry_relative = float(odometry_relative)
         # The keyframe: points, normals, world pose, its covariance and the points' range sigmas.
@@ -670,7 +686,7 @@ class FrameTracker:
         # well below what the first frame after the keyframe found, registration gets fragile.
         if self._key_inliers is None and result is not None:
             self._key_inliers = result.inlier_fraction
-        overlap_lost = result is None or result.inlier_fraction < self._key_inliers - _KEYFRAME_OVERLAP_LOSS
+        overlap_lost = result is None or result.inlier_fraction < self._key_inliers - self.keyframe_overlap_loss
         if overlap_lost or moved >= self.keyframe_distance or turned >= self.keyframe_angle:
             self._set_keyframe(points, normals, pose, covariance, sigma)
             self._key_inliers = None
