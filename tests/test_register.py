@@ -511,6 +511,27 @@ def _corner(rng, count=6000):
     return points + rng.normal(0.0, 0.001, points.shape), normals
 
 
+def test_a_new_keyframe_once_the_overlap_loses_what_constrained_a_direction():
+    """The keyframe sees a corner (every motion constrained) and so does the first frame onto it; a frame that sees
+    only the floor and one wall of it leaves the motion along their join unconstrained: it becomes the keyframe
+    although nearly all of its points pair. A keyframe that never constrained that direction is kept
+    (`test_drift_along_a_degenerate_direction_grows_with_every_frame`)."""
+    from rangesurf.register import FrameTracker
+
+    rng = np.random.default_rng(8)
+    corner, normals = _corner(rng)
+    tracker = FrameTracker(keyframe_overlap_loss=1.0)  # the pairs' share alone never makes a new keyframe
+    tracker.track(corner, normals, odometry=np.eye(4))
+    assert not tracker.track(corner + rng.normal(0.0, 0.001, corner.shape), normals, odometry=np.eye(4)).registration.degenerate
+    assert tracker.state()["key_pose"] == pytest.approx(np.eye(4))
+    two_planes = normals[:, 0] == 0  # the floor and the wall y = 0: nothing fixes x
+    step = np.eye(4)
+    step[0, 3] = 0.01
+    tracked = tracker.track(corner[two_planes] - step[:3, 3], normals[two_planes], odometry=step)
+    assert tracked.registration.degenerate and tracked.registration.inlier_fraction > 0.95
+    assert tracker.state()["key_pose"] == pytest.approx(tracked.T_world_sensor)
+
+
 def test_tracker_keeps_the_prior_when_icp_contradicts_it():
     """ICP finds the true 1 cm step, but the prior claims no motion within 0.5 mm: beyond the chi-square gate the
     prior's motion is kept and flagged; with a prior that allows the step, ICP's motion stands."""

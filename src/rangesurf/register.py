@@ -486,9 +486,10 @@ class FrameTracker:
     frame becomes the next keyframe once it has moved ``keyframe_distance``
     or turned ``keyframe_angle`` from the current one, once the share of its
     points ICP could pair has dropped by ``keyframe_overlap_loss`` since the
-    keyframe's first registration (the views overlap less), or when ICP
-    failed, so registration errors add up once per keyframe rather than once
-    per frame.
+    keyframe's first registration (the views overlap less), once the
+    registration leaves a direction unconstrained that the first one onto
+    the keyframe constrained, or when ICP failed, so registration errors add
+    up once per keyframe rather than once per frame.
     Where ICP cannot see a direction -- a corridor along its axis, a single
     wall -- the prior's motion is kept in that direction and its
     uncertainty enters the covariance, so a degenerate scene hands over to
@@ -524,10 +525,11 @@ class FrameTracker:
         than the error, which consecutive keyframes partly cancel. At 0.10,
         on simulated runs from drifting odometry (RMS position error, mean
         over odometry seeds 5-14, 0.05 -> 0.10): SR-3000 corridor 4.9 -> 3.5
-        mm, arena 5.0 -> 4.7 (200 frames: 5.3 -> 5.5), Kinect arena 0.42 ->
-        0.39, corridor 0.59 -> 0.49; the 600-frame arena's last 100 frames
-        without model alignment 29 -> 19 mm. 0.15 tracked about as well,
-        but its covariance fell short on the 600-frame run (a third 84 %).
+        mm, arena 5.0 -> 4.4 (200 frames: 5.3 either way), Kinect arena 0.42
+        -> 0.39, corridor 0.59 -> 0.49; the 600-frame arena's last 100
+        frames without model alignment 29 -> 19 mm. 0.15 tracked about as
+        well, but its covariance fell short on the 600-frame run (a third
+        84 %).
     method : {"point_to_plane", "point_to_point"}
     icp_variance_scale : float
         How many times larger the true variance of ICP's motion is than
@@ -595,6 +597,8 @@ class FrameTracker:
         # The keyframe: points, normals, world pose, its covariance and the points' range sigmas.
         self._keyframe: tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray, np.ndarray | None] | None = None
         self._key_inliers: float | None = None
+        # Whether the first registration onto the keyframe left a direction unconstrained.
+        self._key_degenerate = False
         self._previous_odometry: np.ndarray | None = None
         self._motion = np.eye(4)
         # The last frame's motion from the keyframe is uncertain by this much (a left perturbation in the
@@ -685,11 +689,16 @@ class FrameTracker:
         # The overlap with the keyframe shrinks as the sensor moves on; once the pairs found fall
         # well below what the first frame after the keyframe found, registration gets fragile.
         if self._key_inliers is None and result is not None:
-            self._key_inliers = result.inlier_fraction
+            self._key_inliers, self._key_degenerate = result.inlier_fraction, result.degenerate
         overlap_lost = result is None or result.inlier_fraction < self._key_inliers - self.keyframe_overlap_loss
-        if overlap_lost or moved >= self.keyframe_distance or turned >= self.keyframe_angle:
+        # The overlap may also lose what constrained a direction (the sensor turns away from the one wall that
+        # fixed it) before it loses many pairs: dead-reckoning on the prior there until the pairs run out let
+        # the error grow (simulated Kinect arena, 200 frames: 10 degenerate frames in a row, 5 mm in one frame).
+        # A keyframe that never constrained it (a corridor) is kept.
+        structure_lost = result is not None and result.degenerate and not self._key_degenerate
+        if overlap_lost or structure_lost or moved >= self.keyframe_distance or turned >= self.keyframe_angle:
             self._set_keyframe(points, normals, pose, covariance, sigma)
-            self._key_inliers = None
+            self._key_inliers, self._key_degenerate = None, False
             self._relative_covariance = np.zeros((6, 6))
         return TrackedPose(pose.copy(), covariance.copy(), result, prior_name, result is None, step_covariance)
 
@@ -755,6 +764,7 @@ class FrameTracker:
         state = {
             "started": np.array(True), "key_points": key_points, "key_pose": key_pose, "key_covariance": key_covariance,
             "key_inliers": np.array(np.nan if self._key_inliers is None else self._key_inliers),
+            "key_degenerate": np.array(self._key_degenerate),
             "motion": self._motion, "pose": self.pose, "covariance": self.covariance,
             "relative_covariance": self._relative_covariance,
         }
@@ -775,6 +785,7 @@ class FrameTracker:
                           state.get("key_sigma"))
         inliers = float(state["key_inliers"])
         self._key_inliers = None if math.isnan(inliers) else inliers
+        self._key_degenerate = bool(state.get("key_degenerate", False))
         self._motion, self.pose, self.covariance = state["motion"], state["pose"], state["covariance"]
         self._relative_covariance = state.get("relative_covariance", np.zeros((6, 6)))
         self._previous_odometry = state.get("previous_odometry")
