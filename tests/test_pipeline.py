@@ -149,10 +149,11 @@ def test_aligning_to_the_model_bounds_the_drift_of_a_long_run():
                 covered.append(_normal_errors_within_2_sigma(frame, result, pose))
         late[every] = np.array(errors[500:])
     # Measured per third: 96.1, 100, 100 % (97.4, 99.1, 100 % with a new keyframe at 5 points of overlap lost, 91.0,
-    # 83.5, 100 % at 15 and no new keyframe when a registration turned degenerate; 97.1, 100, 100 % while a correction counted the frame's registration
-    # twice, ICP's variance scale at 20; 98.7, 99.9, 100 % with that and the scale at 30; 98.7, 80.3, 100 %
-    # while a segment's fit residual stretched the reach it joined patches by; on odometry seeds 6 and 7 the middle
-    # third held 67 % while the drift along unconstrained directions grew once per keyframe).
+    # 83.5, 100 % at 15 and no new keyframe when a registration turned degenerate; 97.1, 100, 100 % while a
+    # correction counted the frame's registration twice, ICP's variance scale at 20; 98.7, 99.9, 100 % with that
+    # and the scale at 30; 98.7, 80.3, 100 % while a segment's fit residual stretched the reach it joined patches
+    # by; on odometry seeds 6 and 7 the middle third held 67 % while the drift along unconstrained directions grew
+    # once per keyframe).
     assert min(np.mean(third) for third in np.array_split(covered, 3)) >= 0.9
     # Measured: 10.8 (at most 20.4) against 19.0 mm (10.6 and 13.2 against 18.5 without a new keyframe when a
     # registration turns degenerate; 12.6 and 16.7 against 29.2 with a new keyframe at 5 points of overlap lost;

@@ -539,13 +539,14 @@ class FrameTracker:
         registered to it. 26 is calibrated for every pixel of a frame
         (the pipeline divides it by its registration step to the power
         1.2, as thinned neighbours err less alike) on simulated SR-3000
-        and Kinect sequences (fitted on odometry seeds 5-9), where +-2
-        sigma then holds 90.8-98.8 % of the tracked poses' errors along the
-        surface normals, pooled over seeds 5-14 (``benchmarks/calibration.py``;
-        single runs 78.1-99.9 %: a run gives few independent pose errors;
-        the arena is covered more than the corridor at any one scale). It
-        weighs ICP against the prior and sets the tracked covariance, hence
-        the model's UL3.
+        and Kinect sequences (fitted on odometry seeds 5-9; the step's
+        power over seeds 5-14), where +-2 sigma then holds 92.7-97.0 % of
+        the tracked poses' errors along the surface normals, pooled over
+        seeds 5-14 (``benchmarks/calibration.py``; single runs 75.9-100 %:
+        a run gives few independent pose errors). With a new keyframe at 5
+        points of overlap lost no one scale kept both the turning arena and
+        the corridor inside 90-98 %. It weighs ICP against the prior and
+        sets the tracked covariance, hence the model's UL3.
 
     Examples
     --------
