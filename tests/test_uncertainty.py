@@ -52,16 +52,16 @@ def test_distances_to_the_true_surfaces_reach_polygon_edges_and_tubes():
     assert distances == pytest.approx(np.array(expected), abs=1e-6)
 
 
-def _arena_run(exact: bool, n_frames: int = 40, scene: str = "arena"):
+def _arena_run(exact: bool, n_frames: int = 40, scene: str = "arena", seed: int = 5):
     """SR-3000 arena (or another scene) from the true poses (trusted) or from drifting odometry: (pipeline, frame
-    results, true poses)."""
+    results, true poses). ``seed`` seeds both the odometry's drift and the sensor's noise."""
     true_poses = simulate.default_trajectory(scene, n_frames, frame_rate=get_sensor("sr3000").frame_rate)
-    odometry = true_poses if exact else simulate.noisy_odometry(true_poses, seed=5)
+    odometry = true_poses if exact else simulate.noisy_odometry(true_poses, seed=seed)
     trusted = RegisterSettings(odometry_sigma_rotation=1e-7, odometry_sigma_translation=1e-7, odometry_sigma_relative=0.0)
     config = PipelineConfig(register=trusted) if exact else None
     pipeline = Pipeline(config)
     results = [pipeline.process(dataclasses.replace(frame, pose=odometry[k]))
-               for k, (frame, _) in enumerate(simulate.iter_sequence(scene, "sr3000", n_frames, seed=5, trajectory=true_poses))]
+               for k, (frame, _) in enumerate(simulate.iter_sequence(scene, "sr3000", n_frames, seed=seed, trajectory=true_poses))]
     return pipeline, results, true_poses
 
 
@@ -85,9 +85,23 @@ def test_the_sensor_level_holds_the_error_of_a_model_made_from_true_poses(scene,
 
 
 def test_the_registration_level_holds_the_pose_errors_and_all_levels_the_model_error():
-    """Drifting odometry: +-2 sigma of the tracked covariance holds most normal-direction pose errors, and the
-    combined band about 95 % of the final model's error."""
-    pipeline, results, true_poses = _arena_run(exact=False)
+    """Drifting odometry: +-2 sigma of the tracked covariance holds 90-98 % of the normal-direction pose errors of
+    six 40-frame runs pooled, and the combined band about 95 % of the first run's final model's error.
+
+    One run gives few independent pose errors: measured per run (seeds 5-10) 82.3, 89.1, 99.8, 96.2, 97.9,
+    99.9 %, pooled 94.2 % (benchmarks/calibration.py pools ten seeds)."""
+    runs = [_arena_run(exact=False, seed=seed) for seed in range(5, 11)]
+    inside = [frame for _, results, true_poses in runs for frame in _pose_errors_within_2_sigma(results, true_poses)]
+    assert 0.9 <= np.mean(np.concatenate(inside)) <= 0.98
+    planes = simulate.get_scene("arena").planes
+    shares = coverage(runs[0][0].finish(), planes[np.isfinite(planes).all(axis=1)])
+    assert shares["matched"] > 10_000
+    assert 0.9 <= shares["combined"] <= 0.98
+    assert shares["combined"] >= max(shares[level] for level in ("UL1", "UL2", "UL3"))
+
+
+def _pose_errors_within_2_sigma(results, true_poses) -> list[np.ndarray]:
+    """Per frame after the first: whether each segmented pixel's normal-direction pose error is within 2 sigma."""
     inside = []
     for result, truth in zip(results[1:], true_poses[1:]):
         rows, cols = np.nonzero(result.segmentation.labels > 0)
@@ -99,12 +113,7 @@ def test_the_registration_level_holds_the_pose_errors_and_all_levels_the_model_e
         jacobian = np.hstack([np.cross(world, world_normals), world_normals])
         sigma = np.sqrt(np.einsum("ij,jk,ik->i", jacobian, result.covariance, jacobian))
         inside.append(np.abs(error) <= 2 * sigma)
-    assert 0.85 <= np.mean(np.concatenate(inside)) <= 0.99
-    planes = simulate.get_scene("arena").planes
-    shares = coverage(pipeline.finish(), planes[np.isfinite(planes).all(axis=1)])
-    assert shares["matched"] > 10_000
-    assert 0.9 <= shares["combined"] <= 0.98
-    assert shares["combined"] >= max(shares[level] for level in ("UL1", "UL2", "UL3"))
+    return inside
 
 
 @pytest.mark.parametrize("k, expected", [(1.0, 0.5), (3.0, 1.0)])
