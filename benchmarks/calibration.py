@@ -28,14 +28,14 @@ simulator's ground truth:
   UL3 carries for those points); drifting odometry. All pixels of a frame
   share one pose error and consecutive frames most of their drift, so a
   sequence gives few independent draws: one run's share moves by several
-  points with the seed (at the defaults, 100-frame SR-3000 corridor runs
-  held 78.1-96.7 % over seeds 5-9), and with the run's length, as the
-  error and the tracked covariance grow differently. The column therefore
-  pools the runs of odometry (and sensor noise) seeds 5-14, and gives the
-  range of single runs beside it: pools of five seeds, 5-9 and 10-14, still
-  differed by up to 1.6 points (the 200-frame arena: 98.0 and 99.6 %). The
-  ICP variance scale was fitted on seeds 5-9 (its power of the
-  registration step, `rangesurf.pipeline`, on 5-7). The long run shows what model alignment
+  points with the seed (the 200-frame SR-3000 arena runs held 75.9-99.9 %
+  over seeds 5-14), and with the run's length, as the error and the
+  tracked covariance grow differently. The column therefore pools the runs
+  of odometry (and sensor noise) seeds 5-14, and gives the range of single
+  runs beside it: pools of five seeds, 5-9 and 10-14, still differ by a few
+  points. The ICP variance scale and the tracker's keyframe overlap loss
+  were fitted on seeds 5-9 (the power of the registration step,
+  `rangesurf.pipeline`, on 5-14). The long run shows what model alignment
   does to UL3 (`GlobalModel.align`): while its covariance counted the
   patches placed by the same drifting poses as independent, it shrank at
   every alignment and the last third of that run held 47-60 % of its
