@@ -157,8 +157,7 @@ def test_aligning_to_the_model_bounds_the_drift_of_a_long_run():
     assert min(np.mean(third) for third in np.array_split(covered, 3)) >= 0.9
     # Measured: 10.8 (at most 20.4) against 19.0 mm (10.6 and 13.2 against 18.5 without a new keyframe when a
     # registration turns degenerate; 12.6 and 16.7 against 29.2 with a new keyframe at 5 points of overlap lost;
-    # 11.0 and 16.0 against 29.5 while a correction counted the
-    # frame's registration twice; 10.6 and 14.9 against 29.3 with that and ICP's variance scale at 30).
+    # 11.0 and 16.0 against 29.5 while a correction counted the frame's registration twice; 10.6 and 14.9 against 29.3 with that and ICP's variance scale at 30).
     # Before: 17.0 while the alignments shrank the covariance as if the patches were independent of the pose; 15.6
     # while the drift along unconstrained directions grew once per keyframe (the covariance is the alignment's prior:
     # larger, it lets a correction pull more); 13.7 while a segment's fit residual stretched the reach it joined

@@ -403,7 +403,8 @@ def test_tracker_meets_per_frame_accuracy_from_noisy_odometry(scene):
 def test_a_new_keyframe_once_the_paired_share_drops_by_the_overlap_loss():
     """On a turning SR-3000 arena sequence, a frame becomes the keyframe exactly when the share of its points
     ICP paired has fallen by ``keyframe_overlap_loss`` below the first registration's onto the current keyframe
-    (or it moved or turned too far from it); a larger loss keeps each keyframe longer."""
+    (or it moved or turned too far from it, or its registration turned degenerate); a larger loss keeps each
+    keyframe longer."""
     frames, _ = simulate.simulate_sequence("arena", "sr3000", 40, seed=5)
     switches = {loss: _keyframe_switches(frames, loss) for loss in (0.05, 0.15)}
     assert switches[0.15] >= 1 and switches[0.15] < switches[0.05]
@@ -413,7 +414,8 @@ def _keyframe_switches(frames, loss: float) -> int:
     from rangesurf.register import FrameTracker
 
     tracker = FrameTracker(keyframe_overlap_loss=loss)
-    first_share, switches = None, 0
+    first_share = first_degenerate = None
+    switches = 0
     for frame in frames:
         key_pose = tracker.state().get("key_pose")
         points = frame.points.astype(np.float32)
@@ -422,11 +424,13 @@ def _keyframe_switches(frames, loss: float) -> int:
         if key_pose is None:
             continue
         share = tracked.registration.inlier_fraction
-        first_share = share if first_share is None else first_share
+        degenerate = tracked.registration.degenerate
+        if first_share is None:
+            first_share, first_degenerate = share, degenerate
         motion = np.linalg.inv(key_pose) @ tracked.T_world_sensor
         turned = np.degrees(np.arccos(np.clip((np.trace(motion[:3, :3]) - 1) / 2, -1, 1)))
-        expected = (share < first_share - loss or np.linalg.norm(motion[:3, 3]) >= tracker.keyframe_distance
-                    or turned >= tracker.keyframe_angle)
+        expected = (share < first_share - loss or (degenerate and not first_degenerate)
+                    or np.linalg.norm(motion[:3, 3]) >= tracker.keyframe_distance or turned >= tracker.keyframe_angle)
         switched = not np.array_equal(tracker.state()["key_pose"], key_pose)
         assert switched == expected
         if switched:
