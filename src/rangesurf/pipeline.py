@@ -208,7 +208,7 @@ class Pipeline:
 
         smooth = denoise_range(frame.range, method=self.config.denoise.method, sensor=frame.sensor,
                                intensity=frame.intensity, rays=frame.rays)
-        points = (frame.rays * smooth[..., None]).astype(np.float32)
+        points = np.multiply(frame.rays, smooth[..., None], dtype=np.float32)
         finite = np.isfinite(smooth)
         sigma = frame.sensor.range_sigma(np.where(finite, smooth, 1.0), frame.intensity)
         lap("denoise")
@@ -426,7 +426,9 @@ def _median_footprint(frame: RangeFrame, distance: np.ndarray, *, rows: int = 4,
     On every ``rows``-th row, the ray pairs starting at every ``columns``-th column.
     """
     rays = frame.rays[::rows]
-    cosine = np.clip((rays[:, 1::columns] * rays[:, : rays.shape[1] - 1 : columns]).sum(axis=-1), -1.0, 1.0)
+    right, left = rays[:, 1::columns], rays[:, : rays.shape[1] - 1 : columns]
+    # Component by component: NumPy's sum over a strided last axis of 3 took ten times as long.
+    cosine = np.clip(right[..., 0] * left[..., 0] + right[..., 1] * left[..., 1] + right[..., 2] * left[..., 2], -1.0, 1.0)
     angle = np.arccos(cosine)
     footprint = angle * distance[::rows, 1::columns]
     footprint = footprint[np.isfinite(footprint) & (footprint > 0)]
