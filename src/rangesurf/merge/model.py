@@ -35,7 +35,7 @@ from rangesurf.frame import PinholeProjection, check_rigid_transform
 from rangesurf.io._common import FormatError, atomic_path
 from rangesurf.io.npz import load_arrays
 from rangesurf.lod import progressive_order
-from rangesurf.merge.planar import CELL_FIELDS, Observations, PlanarPatch, runs_of, variance_along
+from rangesurf.merge.planar import CELL_FIELDS, Observations, PlanarPatch, normal_variance_form, runs_of, variance_along
 from rangesurf.mesh import Surface
 from rangesurf.register import _exp
 
@@ -868,13 +868,13 @@ def _variances(points, ul1, ul2, normal, covariance):  # pragma: no cover - comp
     `_MEDIAN_SAMPLE` of the points (`Observations.reach_variance`)."""
     count = points.shape[0]
     noise, fit, registration = np.zeros(count), np.zeros(count), np.zeros(count)
+    form = normal_variance_form(normal[0], normal[1], normal[2], covariance)
     for k in range(count):
         if len(ul1) and ul1[k] == ul1[k]:
             noise[k] = np.float64(ul1[k]) ** 2
         if len(ul2) and ul2[k] == ul2[k]:
             fit[k] = np.float64(ul2[k]) ** 2
-        registration[k] = max(variance_along(points[k, 0], points[k, 1], points[k, 2], normal[0], normal[1], normal[2],
-                                             covariance), 0.0)
+        registration[k] = max(variance_along(points[k, 0], points[k, 1], points[k, 2], form), 0.0)
     step = max(1, count // _MEDIAN_SAMPLE)
     median = np.median(noise[::step] + registration[::step]) if count else 0.0
     return noise, fit, registration, median
