@@ -373,11 +373,20 @@ def test_interior_kernel_matches_minimum_and_maximum_filters():
     assert 0 < interior.sum() < (mapped > 0).sum()
     # The sums the plane fit takes: the outline's point moments, and the ray-weighted moments in and out.
     sigma = np.random.default_rng(14).uniform(0.005, 0.02, labels.shape)
-    outline, inside, outside = region_grow._outline_and_weighted_moments(points, sigma, mapped, interior, 4)
+    outline, inside, outside, sampled = region_grow._outline_and_weighted_moments(points, sigma, mapped, interior, 4, 1)
     weights = (points.astype(np.float64) ** 2).sum(axis=2) / sigma**2
     assert np.allclose(outline, moments_reference(points, np.where(interior, 0, mapped), 4), rtol=1e-9, atol=1e-9)
     assert np.allclose(inside, moments_reference(points, np.where(interior, mapped, 0), 4, weights), rtol=1e-9)
     assert np.allclose(outside, moments_reference(points, np.where(interior, 0, mapped), 4, weights), rtol=1e-9)
+    assert sampled.shape == (0, 10)
+    # Every second row only (large frames): the same sums over those rows, and the interior's point moments.
+    rows = np.zeros(labels.shape, bool)
+    rows[::2] = True
+    outline, inside, outside, sampled = region_grow._outline_and_weighted_moments(points, sigma, mapped, interior, 4, 2)
+    assert np.allclose(outline, moments_reference(points, np.where(rows & ~interior, mapped, 0), 4), rtol=1e-9, atol=1e-9)
+    assert np.allclose(sampled, moments_reference(points, np.where(rows & interior, mapped, 0), 4), rtol=1e-9, atol=1e-9)
+    assert np.allclose(inside, moments_reference(points, np.where(rows & interior, mapped, 0), 4, weights), rtol=1e-9)
+    assert np.allclose(outside, moments_reference(points, np.where(rows & ~interior, mapped, 0), 4, weights), rtol=1e-9)
 
 
 def test_adjacency_matches_numpy_reference():

@@ -332,7 +332,8 @@ def _refine_steps(points, distance, valid, sigma, coarse_labels, coarse_planes, 
         points, distance, sigma, labels, planes, moments, free_rows, free_cols, distance_sigmas, depth_jump, _ABSORB_SWEEPS + factor
     )
     identity = np.arange(moments.shape[0]).astype(np.int32)
-    fitted = _interior_planes(points, sigma, labels, identity, moments)
+    # A frame grown decimated is large: its interior fits take every second row.
+    fitted = _interior_planes(points, sigma, labels, identity, moments, 2 if factor > 1 else 1)
     return _from_moments_kernel(labels, moments, fitted, identity, free_rows.size)
 
 
@@ -377,7 +378,7 @@ def _merge_coplanar(pairs, moments, cos_max_angle):  # pragma: no cover - compil
 
 
 @numba.njit(**_JIT)
-def _interior_planes(points, sigma, labels, lookup, moments):  # pragma: no cover - compiled
+def _interior_planes(points, sigma, labels, lookup, moments, row_step=1):  # pragma: no cover - compiled
     """Plane of each segment's interior (2 pixels in from its outline; the image border does not count), fitted along the rays.
 
     ``labels`` are mapped through ``lookup`` first; ``moments`` are those of
@@ -390,16 +391,24 @@ def _interior_planes(points, sigma, labels, lookup, moments):  # pragma: no cove
     3-4 degrees toward the rays. One trimming pass then leaves out the
     points more than ``_TRIM_RMS`` residual RMS off the plane (a rounded
     crease, a stray pixel).
+
+    With ``row_step`` > 1 the fits take every ``row_step``-th row only (the
+    interior is still found at full resolution): a large frame's segments
+    have pixels to spare (simulated 640x480 frames, every 2nd row: the same
+    detections, mean normal error 0.14 -> 0.17 degrees on raw arena frames,
+    unchanged on denoised ones; `refine_upsampled` 5.3 -> 4.3 ms).
     """
     labels, interior = _interior_kernel(labels, lookup)
-    outline, weighted, outline_weighted = _outline_and_weighted_moments(points, sigma, labels, interior, moments.shape[0])
-    fit = moments - outline
+    outline, weighted, outline_weighted, sampled = _outline_and_weighted_moments(
+        points, sigma, labels, interior, moments.shape[0], row_step)
+    # The interior's point moments: all of a segment's less its outline's; sampled rows, the interior's own.
+    fit = moments - outline if row_step == 1 else sampled
     # Segments with too small an interior are fitted whole.
     whole = np.empty(moments.shape[0], np.bool_)
     for label in range(moments.shape[0]):
-        whole[label] = fit[label, 0] < max(float(_MIN_INTERIOR), _MIN_INTERIOR_FRACTION * moments[label, 0])
+        whole[label] = fit[label, 0] * row_step < max(float(_MIN_INTERIOR), _MIN_INTERIOR_FRACTION * moments[label, 0])
         if whole[label]:
-            fit[label] = moments[label]
+            fit[label] = moments[label] if row_step == 1 else sampled[label] + outline[label]
             weighted[label] += outline_weighted[label]
     # Where the rays give no plane (too few points, or all on one ray), the total least-squares one.
     fallback, _ = planes_kernel(fit)
@@ -408,7 +417,7 @@ def _interior_planes(points, sigma, labels, lookup, moments):  # pragma: no cove
     for label in range(moments.shape[0]):
         if not limits[label] == limits[label]:
             limits[label] = math.inf  # no plane at all: nothing to trim
-    outliers, off = _outlier_moments(points, sigma, labels, interior, whole, planes, limits)
+    outliers, off = _outlier_moments(points, sigma, labels, interior, whole, planes, limits, row_step)
     refit = _or_fallback(ray_planes_kernel(weighted - outliers), planes)
     for label in range(moments.shape[0]):
         if fit[label, 0] - off[label] >= max(3.0, 0.5 * fit[label, 0]):
@@ -700,19 +709,22 @@ def _interior_kernel(labels, lookup):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _outline_and_weighted_moments(points, sigma, labels, interior, n_labels):  # pragma: no cover - compiled
-    """In one pass: each label's point moments outside its ``interior``, and `ray_planes_kernel`'s weighted moments inside it and outside it.
+def _outline_and_weighted_moments(points, sigma, labels, interior, n_labels, row_step):  # pragma: no cover - compiled
+    """In one pass over every ``row_step``-th row: each label's point moments outside its ``interior``, and
+    `ray_planes_kernel`'s weighted moments inside it and outside it; with ``row_step`` > 1 also the point
+    moments inside it (else empty).
 
-    The outline is the few pixels: its point moments are taken off the
-    segment's, rather than the interior's summed again.
+    The outline is the few pixels: over all rows, its point moments are taken
+    off the segment's, rather than the interior's summed again.
     """
     height, width = labels.shape
     outline = np.zeros((n_labels, 10))
     inside_weighted = np.zeros((n_labels, 10))
     outside_weighted = np.zeros((n_labels, 10))
+    sampled = np.zeros((n_labels if row_step > 1 else 0, 10))
     current = 0
-    inside = outside = outside_plain = _EMPTY_RUN
-    for i in range(height):
+    inside = outside = outside_plain = inside_plain = _EMPTY_RUN
+    for i in range(0, height, row_step):
         for j in range(width):
             label = labels[i, j]
             if label <= 0:
@@ -721,29 +733,36 @@ def _outline_and_weighted_moments(points, sigma, labels, interior, n_labels):  #
                 _run_flush(outline, current, outside_plain)
                 _run_flush(inside_weighted, current, inside)
                 _run_flush(outside_weighted, current, outside)
-                current, inside, outside, outside_plain = label, _EMPTY_RUN, _EMPTY_RUN, _EMPTY_RUN
+                if row_step > 1:
+                    _run_flush(sampled, current, inside_plain)
+                current, inside, outside, outside_plain, inside_plain = label, _EMPTY_RUN, _EMPTY_RUN, _EMPTY_RUN, _EMPTY_RUN
             x = np.float64(points[i, j, 0])
             y = np.float64(points[i, j, 1])
             z = np.float64(points[i, j, 2])
             w = ray_weight(x, y, z, sigma[i, j])
             if interior[i, j]:
                 inside = _run_add_weighted(inside, x, y, z, w)
+                if row_step > 1:
+                    inside_plain = _run_add(inside_plain, x, y, z)
             else:
                 outside = _run_add_weighted(outside, x, y, z, w)
                 outside_plain = _run_add(outside_plain, x, y, z)
     _run_flush(outline, current, outside_plain)
     _run_flush(inside_weighted, current, inside)
     _run_flush(outside_weighted, current, outside)
-    return outline, inside_weighted, outside_weighted
+    if row_step > 1:
+        _run_flush(sampled, current, inside_plain)
+    return outline, inside_weighted, outside_weighted, sampled
 
 
 @numba.njit(**_JIT)
-def _outlier_moments(points, sigma, labels, interior, whole, planes, limits):  # pragma: no cover - compiled
+def _outlier_moments(points, sigma, labels, interior, whole, planes, limits, row_step):  # pragma: no cover - compiled
     """`ray_planes_kernel`'s weighted moments of each label's fitted pixels (interior, or all of a ``whole`` label) beyond ``limits`` of its plane, and their count.
 
     A label without a plane (NaN) has all its fitted pixels beyond it unless
     its limit is infinite. These are the few pixels (a rounded crease, a
-    stray pixel) to take off the sums of all.
+    stray pixel) to take off the sums of all. Every ``row_step``-th row only,
+    as in `_interior_planes`.
     """
     height, width = labels.shape
     weighted = np.zeros((planes.shape[0], 10))
@@ -751,7 +770,7 @@ def _outlier_moments(points, sigma, labels, interior, whole, planes, limits):  #
     current = 0
     run = _EMPTY_RUN
     count = 0.0
-    for i in range(height):
+    for i in range(0, height, row_step):
         for j in range(width):
             label = labels[i, j]
             if label <= 0 or not (whole[label] or interior[i, j]) or limits[label] == math.inf:
