@@ -149,6 +149,17 @@ def _points(frame) -> np.ndarray:
     return (frame.rays * frame.range[..., None]).astype(np.float32)
 
 
+def contention_text(times: dict[str, list[float]], task_sums: dict[int, list[float]]) -> str:
+    """Where the warm 2-worker batch's time goes: the tasks themselves (slower side by side) or waiting."""
+    best = min(range(len(times["warm 2"])), key=lambda k: times["warm 2"][k])
+    alone, side_by_side = min(task_sums[1]), task_sums[2][best]
+    return (f"The warm batches' tasks took {alone:.2f} s summed on 1 worker and {side_by_side:.2f} s on 2 "
+            f"({100 * (side_by_side / alone - 1):+.0f} %: two recordings at once slow each other down, on two "
+            f"cores that share caches and memory); the 2-worker batch's wall time is "
+            f"{100 * (times['warm 2'][best] / (side_by_side / 2) - 1):+.0f} % over half its tasks' sum "
+            "(scheduling, and the last task running alone).")
+
+
 def main() -> None:
     n_frames = int(sys.argv[1]) if len(sys.argv) > 1 else 60
     rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 3
@@ -160,6 +171,8 @@ def main() -> None:
         reference = root / "sequential"
         sequential(reference, 2)  # compiles or loads the Numba kernels, filling the on-disk cache for the workers
         times: dict[str, list[float]] = {key: [] for key in ("sequential", "local 1", "local 2", "warm 1", "warm 2")}
+        # Per round, the warm batches' task times summed (each task's wall time on its worker).
+        task_sums: dict[int, list[float]] = {1: [], 2: []}
         same = True
         warm = {workers: warm_cluster(workers) for workers in (1, 2)}
         try:
@@ -177,6 +190,7 @@ def main() -> None:
                                       seed=SEEDS, overwrite=True, progress=False)
                     assert not batch.failed, [item.error for item in batch.failed]
                     times[f"warm {workers}"].append(batch.seconds)
+                    task_sums[workers].append(sum(item.seconds for item in batch.items))
                     same &= identical(reference, out)
                 loads.append(os.getloadavg()[0])
                 print(f"round {round_ + 1}: " + ", ".join(f"{key} {values[-1]:.2f} s" for key, values in times.items()))
@@ -215,6 +229,8 @@ def main() -> None:
         row("run_batch, own local cluster, 2 workers", "local 2", "local 1"),
         row("run_batch, running warm cluster, 1 worker", "warm 1", None),
         row("run_batch, running warm cluster, 2 workers", "warm 2", "warm 1"),
+        "",
+        contention_text(times, task_sums),
         "",
         "\"Own local cluster\" includes starting the cluster, the workers' imports and loading the cached "
         "Numba kernels (a fixed cost of a few seconds per batch); \"running warm cluster\" is the work alone.",
