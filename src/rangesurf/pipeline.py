@@ -428,7 +428,8 @@ def _median_footprint(frame: RangeFrame, distance: np.ndarray, *, rows: int = 4,
     rays = frame.rays[::rows]
     right, left = rays[:, 1::columns], rays[:, : rays.shape[1] - 1 : columns]
     # Component by component: NumPy's sum over a strided last axis of 3 took ten times as long.
-    cosine = np.clip(right[..., 0] * left[..., 0] + right[..., 1] * left[..., 1] + right[..., 2] * left[..., 2], -1.0, 1.0)
+    dot = right[..., 0] * left[..., 0] + right[..., 1] * left[..., 1] + right[..., 2] * left[..., 2]
+    cosine = np.clip(dot, -1.0, 1.0)
     angle = np.arccos(cosine)
     footprint = angle * distance[::rows, 1::columns]
     footprint = footprint[np.isfinite(footprint) & (footprint > 0)]

@@ -383,10 +383,11 @@ def test_interior_kernel_matches_minimum_and_maximum_filters():
     rows = np.zeros(labels.shape, bool)
     rows[::2] = True
     outline, inside, outside, sampled = region_grow._outline_and_weighted_moments(points, sigma, mapped, interior, 4, 2)
-    assert np.allclose(outline, moments_reference(points, np.where(rows & ~interior, mapped, 0), 4), rtol=1e-9, atol=1e-9)
-    assert np.allclose(sampled, moments_reference(points, np.where(rows & interior, mapped, 0), 4), rtol=1e-9, atol=1e-9)
-    assert np.allclose(inside, moments_reference(points, np.where(rows & interior, mapped, 0), 4, weights), rtol=1e-9)
-    assert np.allclose(outside, moments_reference(points, np.where(rows & ~interior, mapped, 0), 4, weights), rtol=1e-9)
+    outline_rows, interior_rows = np.where(rows & ~interior, mapped, 0), np.where(rows & interior, mapped, 0)
+    assert np.allclose(outline, moments_reference(points, outline_rows, 4), rtol=1e-9, atol=1e-9)
+    assert np.allclose(sampled, moments_reference(points, interior_rows, 4), rtol=1e-9, atol=1e-9)
+    assert np.allclose(inside, moments_reference(points, interior_rows, 4, weights), rtol=1e-9)
+    assert np.allclose(outside, moments_reference(points, outline_rows, 4, weights), rtol=1e-9)
 
 
 def test_adjacency_matches_numpy_reference():

@@ -735,7 +735,8 @@ def _outline_and_weighted_moments(points, sigma, labels, interior, n_labels, row
                 _run_flush(outside_weighted, current, outside)
                 if row_step > 1:
                     _run_flush(sampled, current, inside_plain)
-                current, inside, outside, outside_plain, inside_plain = label, _EMPTY_RUN, _EMPTY_RUN, _EMPTY_RUN, _EMPTY_RUN
+                current = label
+                inside = outside = outside_plain = inside_plain = _EMPTY_RUN
             x = np.float64(points[i, j, 0])
             y = np.float64(points[i, j, 1])
             z = np.float64(points[i, j, 2])
