@@ -882,8 +882,8 @@ def _variances(points, ul1, ul2, normal, covariance):  # pragma: no cover - comp
 
 @numba.njit(**_JIT)
 def _to_world(vertices, rotation, translation):  # pragma: no cover - compiled
-    """``vertices @ rotation.T + translation`` in float64, in one pass (NumPy: 2.5 ms for a 640x480 frame's 76,000
-    vertices with its temporaries, this 0.2)."""
+    """``vertices @ rotation.T + translation`` in float64, in one pass (a 640x480 frame's 76,000 vertices, timed
+    alone: 0.2 ms against NumPy's 2.6 with its float64 copy and temporaries)."""
     world = np.empty((vertices.shape[0], 3))
     for k in range(vertices.shape[0]):
         x, y, z = np.float64(vertices[k, 0]), np.float64(vertices[k, 1]), np.float64(vertices[k, 2])

@@ -714,8 +714,8 @@ def _outline_and_weighted_moments(points, sigma, labels, interior, n_labels, row
     `ray_planes_kernel`'s weighted moments inside it and outside it; with ``row_step`` > 1 also the point
     moments inside it (else empty).
 
-    The outline is the few pixels: over all rows, its point moments are taken
-    off the segment's, rather than the interior's summed again.
+    The outline is the few pixels: with every row read, the caller takes its
+    point moments off the segment's rather than summing the interior's again.
     """
     height, width = labels.shape
     outline = np.zeros((n_labels, 10))
