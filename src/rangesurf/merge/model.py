@@ -127,6 +127,32 @@ class ModelAlignment:
     applied: bool
 
 
+class _PatchTable:
+    """The patches' normals, world boxes, world planes and cell counts as arrays, for `_nearby_patches`.
+
+    Rows are refreshed from each patch's cached `PlanarPatch.bounds` and
+    `PlanarPatch.world_plane` when its revision has moved on: a frame
+    changes a few patches, the model has many.
+    """
+
+    def __init__(self, count: int) -> None:
+        self.revisions = np.full(count, -1, np.int64)
+        self.normals = np.empty((count, 3))
+        self.lows = np.empty((count, 3))
+        self.highs = np.empty((count, 3))
+        self.planes = np.empty((count, 4))
+        self.sizes = np.empty(count, np.int64)
+
+    def refresh(self, patches: list[PlanarPatch]) -> None:
+        for index, patch in enumerate(patches):
+            if self.revisions[index] != patch.revision:
+                self.revisions[index] = patch.revision
+                self.normals[index] = patch.normal
+                self.lows[index], self.highs[index] = patch.bounds()
+                self.planes[index] = patch.world_plane()
+                self.sizes[index] = patch.n_cells
+
+
 class GlobalModel:
     """Surfaces of many registered frames merged into one model, in world coordinates.
 
@@ -207,9 +233,9 @@ class GlobalModel:
         self._timestamps = GrowingArray()
         self._history = GrowingArray((len(fields(MergeStep)),), np.int32)
         self.cells_carved = 0
-        # The patches' normals as one array, for the first test against every patch (None: to rebuild,
-        # after the list of patches changed).
-        self._normals: np.ndarray | None = None
+        # Per patch, what `_nearby` tests against every patch (None: to rebuild, after the list of patches
+        # changed; a patch's row is refreshed when its revision moved on).
+        self._table: _PatchTable | None = None
         # id(patch) -> (patch revision, with LOD order, mesh)
         self._meshes: dict[int, tuple[int, bool, Surface]] = {}
 
@@ -463,7 +489,7 @@ class GlobalModel:
                                           sigmas=sigmas, checks=checks)
         if removed:
             self.patches = [patch for patch in self.patches if patch.n_cells]
-            self._normals = None
+            self._table = None
             self.cells_carved += removed
         return removed
 
@@ -502,7 +528,7 @@ class GlobalModel:
                 folded.append(patch)
         if folded:
             self.patches = [patch for patch in self.patches if all(patch is not other for other in folded)]
-            self._normals = None
+            self._table = None
         return len(folded)
 
     def _reach(self, variance: float) -> float:
@@ -515,25 +541,17 @@ class GlobalModel:
         within reach)."""
         if not self.patches:
             return []
-        if self._normals is None or len(self._normals) != len(self.patches):
-            self._normals = np.array([patch.normal for patch in self.patches])
-        step = max(1, len(points) // _MEDIAN_SAMPLE)
+        if self._table is None or len(self._table.revisions) != len(self.patches):
+            self._table = _PatchTable(len(self.patches))
+        self._table.refresh(self.patches)
+        table = self._table
         # Only patches whose box comes within touching distance: the cost per frame stays the same
         # however large the model grows.
         margin = reach + (self.bridge + 2) * self.cell_size
-        low, high = _bounding_box(points)
-        low, high = low - margin, high + margin
-        nearby = []
-        for index in np.flatnonzero(self._normals @ plane[:3] >= math.cos(math.radians(angle))):
-            patch = self.patches[index]
-            if patch.n_cells <= larger_than:
-                continue
-            patch_low, patch_high = patch.bounds()
-            if (patch_low > high).any() or (patch_high < low).any():
-                continue
-            if _median_distance(points, step, patch.world_plane()) <= reach:
-                nearby.append(int(index))
-        return nearby
+        nearby = _nearby_patches(points, max(1, len(points) // _MEDIAN_SAMPLE), margin, reach,
+                                 np.ascontiguousarray(plane[:3], np.float64), math.cos(math.radians(angle)), larger_than,
+                                 table.normals, table.lows, table.highs, table.planes, table.sizes)
+        return nearby.tolist()
 
     def _candidates(self, plane: np.ndarray, points: np.ndarray, reach: float) -> list[tuple[int, int]]:
         """(cells touched, index) of the patches a planar surface's world points continue."""
@@ -579,7 +597,7 @@ class GlobalModel:
         if not candidates:
             patch = PlanarPatch.from_plane(plane, observations.points, self.cell_size)
             self.patches.append(patch)
-            self._normals = None
+            self._table = None
             _, added, _ = patch.fuse(observations, frame)
             counts["created"] += 1
             counts["cells_added"] += added
@@ -594,7 +612,7 @@ class GlobalModel:
             target.absorb(other, frame)
         if joined:
             self.patches = [patch for patch in self.patches if all(patch is not other for other in joined)]
-            self._normals = None
+            self._table = None
             counts["joined"] += len(joined)
         updated, added, rejected = target.fuse(observations, frame, reach=reach)
         counts["fused"] += 1
@@ -905,6 +923,30 @@ def _bounding_box(points):  # pragma: no cover - compiled
             elif value > high[axis]:
                 high[axis] = value
     return low, high
+
+
+@numba.njit(**_JIT)
+def _nearby_patches(points, step, margin, reach, normal, cosine, larger_than, normals, lows, highs, planes, sizes):  # pragma: no cover - compiled
+    """`GlobalModel._nearby` on a `_PatchTable`'s arrays: indices of the patches of more than ``larger_than``
+    cells whose normal is within ``cosine`` of ``normal``, whose box comes within ``margin`` of the (N, 3)
+    points' box and whose plane every ``step``-th point lies on (median distance within ``reach``)."""
+    low, high = _bounding_box(points)
+    nearby = np.empty(normals.shape[0], np.int64)
+    found = 0
+    for index in range(normals.shape[0]):
+        if not normals[index, 0] * normal[0] + normals[index, 1] * normal[1] + normals[index, 2] * normal[2] >= cosine:
+            continue
+        if sizes[index] <= larger_than:
+            continue
+        apart = False
+        for axis in range(3):
+            apart |= (lows[index, axis] > high[axis] + margin) | (highs[index, axis] < low[axis] - margin)
+        if apart:
+            continue
+        if _median_distance(points, step, planes[index]) <= reach:
+            nearby[found] = index
+            found += 1
+    return nearby[:found]
 
 
 @numba.njit(**_JIT)

@@ -48,6 +48,8 @@ from rangesurf.mesh import Surface, _grid_faces
 __all__ = ["PlanarPatch", "Observations", "CELL_FIELDS", "runs_of"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
+# A plane fit's pivot this small against the largest moment: the cells are collinear (`_fitted_planes`).
+_SINGULAR = 1e-12
 # How many observations the sensor model's noise prediction is worth against a cell's measured scatter.
 _PRIOR_OBSERVATIONS = 2.0
 # One sigma of patch-fit error per metre a fused vertex lies off its patch's plane (beyond its noise).
@@ -167,8 +169,7 @@ class PlanarPatch:
     misses: np.ndarray | None = field(default=None, repr=False, compare=False)
     # Bumped by every change of the cells, so that meshes and plane fits made from them can be cached.
     revision: int = field(default=0, compare=False)
-    _plane: tuple[int, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
-    _world_plane: tuple[int, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
+    _plane: tuple[int, np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
     _bounds: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -279,32 +280,18 @@ class PlanarPatch:
 
         From the running moments: constant time, however large the patch.
         """
-        if self._plane is not None and self._plane[0] == self.revision:
-            return self._plane[1]
-        sw, su, sv, sh, suu, suv, svv, suh, svh = self.moments
-        solution = np.zeros(3)
-        if self.n_cells >= 3 and sw > 0:
-            normal_matrix = np.array([[suu, suv, su], [suv, svv, sv], [su, sv, sw]])
-            right = np.array([suh, svh, sh])
-            try:
-                solution = np.linalg.solve(normal_matrix, right)
-            except np.linalg.LinAlgError:
-                # Collinear cells: the tilt across them is unknown; keep the patch's own plane.
-                solution = np.array([0.0, 0.0, sh / sw])
-        self._plane = (self.revision, solution)
-        return solution
+        return self._planes()[0]
 
     def world_plane(self) -> np.ndarray:
         """The fitted plane in world coordinates, ``(nx, ny, nz, d)`` with the normal facing like the patch's."""
-        # Cached per revision: merging asks for it for every nearby patch, several times per surface.
-        if self._world_plane is None or self._world_plane[0] != self.revision:
-            a, b, c = self.fitted_plane()
-            # h - a u - b v - c = 0 in the patch frame.
-            normal = np.array([-a, -b, 1.0]) @ self.axes
-            plane = np.empty(4)
-            plane[:3], plane[3] = normal, -c - normal @ self.origin
-            self._world_plane = (self.revision, plane / math.sqrt(normal @ normal))
-        return self._world_plane[1].copy()
+        return self._planes()[1].copy()
+
+    def _planes(self) -> tuple[np.ndarray, np.ndarray]:
+        """`fitted_plane` and `world_plane`, cached per revision: merging asks for them for every nearby patch,
+        several times per surface, and a patch changes once per frame at most."""
+        if self._plane is None or self._plane[0] != self.revision:
+            self._plane = (self.revision, *_fitted_planes(self.moments, self.n_cells, self.axes, self.origin))
+        return self._plane[1], self._plane[2]
 
     def occupancy(self, margin: int = 0) -> tuple[np.ndarray, int, int]:
         """Occupied cells as an image (rows v, columns u) with ``margin`` empty cells around; and its origin cell."""
@@ -619,6 +606,61 @@ def _moments(weight: np.ndarray, u: np.ndarray, v: np.ndarray, h: np.ndarray) ->
     wu, wv = weight * u, weight * v
     return np.array([weight.sum(), wu.sum(), wv.sum(), (weight * h).sum(), (wu * u).sum(), (wu * v).sum(),
                      (wv * v).sum(), (wu * h).sum(), (wv * h).sum()])
+
+
+@numba.njit(**_JIT)
+def _fitted_planes(moments, n_cells, axes, origin):  # pragma: no cover - compiled
+    """`PlanarPatch.fitted_plane` (a, b, c) from the moments and the patch frame's `world_plane`, in one compiled call.
+
+    The 3x3 normal equations are solved by Gaussian elimination with partial
+    pivoting; a pivot below `_SINGULAR` of the largest entry (collinear
+    cells: the tilt across them is unknown, and rounding decides what a
+    solver returns) keeps the patch's own plane at the mean height. Fewer
+    than three cells: that plane at height 0. (``np.linalg.solve`` and the
+    arrays around it cost ten times the arithmetic.)
+    """
+    sw, su, sv, sh, suu, suv, svv, suh, svh = (moments[0], moments[1], moments[2], moments[3], moments[4], moments[5],
+                                               moments[6], moments[7], moments[8])
+    solution = np.zeros(3)
+    if n_cells >= 3 and sw > 0:
+        system = np.array([[suu, suv, su, suh], [suv, svv, sv, svh], [su, sv, sw, sh]])
+        singular = False
+        largest = 0.0
+        for row in range(3):
+            for column in range(3):
+                largest = max(largest, abs(system[row, column]))
+        for column in range(3):
+            pivot = column
+            for row in range(column + 1, 3):
+                if abs(system[row, column]) > abs(system[pivot, column]):
+                    pivot = row
+            if abs(system[pivot, column]) <= _SINGULAR * largest:
+                singular = True
+                break
+            for k in range(4):
+                system[column, k], system[pivot, k] = system[pivot, k], system[column, k]
+            for row in range(column + 1, 3):
+                factor = system[row, column] / system[column, column]
+                for k in range(column, 4):
+                    system[row, k] -= factor * system[column, k]
+        if singular:
+            solution[2] = sh / sw
+        else:
+            for row in range(2, -1, -1):
+                value = system[row, 3]
+                for k in range(row + 1, 3):
+                    value -= system[row, k] * solution[k]
+                solution[row] = value / system[row, row]
+    a, b, c = solution[0], solution[1], solution[2]
+    # h - a u - b v - c = 0 in the patch frame.
+    plane = np.empty(4)
+    for axis in range(3):
+        plane[axis] = -a * axes[0, axis] - b * axes[1, axis] + axes[2, axis]
+    plane[3] = -c - (plane[0] * origin[0] + plane[1] * origin[1] + plane[2] * origin[2])
+    norm = math.sqrt(plane[0] * plane[0] + plane[1] * plane[1] + plane[2] * plane[2])
+    for k in range(4):
+        plane[k] /= norm
+    return solution, plane
 
 
 @numba.njit(**_JIT)
