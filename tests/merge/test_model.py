@@ -546,3 +546,29 @@ def test_align_cannot_make_a_pose_more_certain_than_the_map_is(arena_run):
     assert np.linalg.eigvalsh(later.covariance - 0.9 * placed).min() > 0
     before = np.linalg.norm(drifted[:3, 3] - truth[:3, 3])
     assert np.linalg.norm(later.T_world_sensor[:3, 3] - truth[:3, 3]) < 0.5 * before
+
+
+def patch_of(u, v, h, weight):
+    """A patch in the world frame (origin 0, axes x, y, z) with one cell per (u, v): means (u, v, h) of weight."""
+    from rangesurf.merge.planar import PlanarPatch
+
+    sums = {"weight": weight, "u": u * weight, "v": v * weight, "h": h * weight}
+    coordinates = np.column_stack([np.floor(u / 0.1), np.floor(v / 0.1)]).astype(np.int32)
+    return PlanarPatch(origin=np.zeros(3), axes=np.eye(3), cell_size=0.1, coordinates=coordinates, sums=sums)
+
+
+def test_patch_plane_fit_matches_weighted_least_squares_and_keeps_collinear_cells_level():
+    rng = np.random.default_rng(3)
+    u, v = np.repeat(np.arange(8) * 0.1, 6) + 0.05, np.tile(np.arange(6) * 0.1, 8) + 0.05
+    weight = rng.uniform(0.5, 2.0, u.size)
+    h = 0.2 * u - 0.1 * v + 0.3 + 0.01 * rng.standard_normal(u.size)
+    patch = patch_of(u, v, h, weight)
+    design = np.column_stack([u, v, np.ones_like(u)]) * np.sqrt(weight)[:, None]
+    expected = np.linalg.lstsq(design, h * np.sqrt(weight), rcond=None)[0]
+    np.testing.assert_allclose(patch.fitted_plane(), expected, rtol=1e-9, atol=1e-12)
+    # The world plane is h - a u - b v - c = 0 with a unit normal facing +z (the patch normal).
+    normal = np.array([-expected[0], -expected[1], 1.0]) / np.linalg.norm([expected[0], expected[1], 1.0])
+    np.testing.assert_allclose(patch.world_plane(), [*normal, -expected[2] * normal[2]], atol=1e-12)
+    # One row of cells: the tilt across it is unknown, so the patch stays level at the weighted mean height.
+    row = patch_of(u[::6], np.full(8, 0.05), h[::6], weight[::6])
+    np.testing.assert_allclose(row.fitted_plane(), [0.0, 0.0, np.average(h[::6], weights=weight[::6])], atol=1e-12)
