@@ -848,15 +848,31 @@ def _plane_terms(pairs: list, delta: np.ndarray, *, with_placement: bool) -> tup
     moved_pose = _exp(delta)
     information, gradient = np.zeros((6, 6)), np.zeros(6)
     for points, variance, placed, patch_plane in pairs:
-        moved = points @ moved_pose[:3, :3].T + moved_pose[:3, 3]
-        normal = patch_plane[:3]
-        residual = moved @ normal + patch_plane[3]
-        jacobian = np.column_stack([np.cross(moved, normal), np.broadcast_to(normal, moved.shape)])
-        total = variance + placed if with_placement else variance
-        weight = min(1.0, _ALIGN_INDEPENDENT / len(points)) / np.maximum(total, 1e-12)
-        information += (jacobian * weight[:, None]).T @ jacobian
-        gradient += jacobian.T @ (weight * residual)
+        _add_plane_terms(points, variance, placed if with_placement else 0.0, patch_plane, moved_pose,
+                         min(1.0, _ALIGN_INDEPENDENT / len(points)), information, gradient)
     return information, gradient
+
+
+@numba.njit(**_JIT)
+def _add_plane_terms(points, variance, placed, plane, pose, share, information, gradient):  # pragma: no cover - compiled
+    """Add one plane's J^T W J and J^T W r to ``information`` and ``gradient`` (`_plane_terms`): J = [p x n, n]
+    and r = n . p + d of each point p moved by ``pose``, weight ``share / (variance + placed)``."""
+    nx, ny, nz, offset = plane[0], plane[1], plane[2], plane[3]
+    row = np.empty(6)
+    for k in range(points.shape[0]):
+        x, y, z = points[k, 0], points[k, 1], points[k, 2]
+        mx = pose[0, 0] * x + pose[0, 1] * y + pose[0, 2] * z + pose[0, 3]
+        my = pose[1, 0] * x + pose[1, 1] * y + pose[1, 2] * z + pose[1, 3]
+        mz = pose[2, 0] * x + pose[2, 1] * y + pose[2, 2] * z + pose[2, 3]
+        residual = mx * nx + my * ny + mz * nz + offset
+        row[0], row[1], row[2] = my * nz - mz * ny, mz * nx - mx * nz, mx * ny - my * nx
+        row[3], row[4], row[5] = nx, ny, nz
+        weight = share / max(variance[k] + placed, 1e-12)
+        for a in range(6):
+            weighted = weight * row[a]
+            gradient[a] += weighted * residual
+            for b in range(6):
+                information[a, b] += weighted * row[b]
 
 
 def _observations(surface: Surface, points: np.ndarray, normal: np.ndarray, covariance: np.ndarray | None) -> Observations:
