@@ -291,41 +291,39 @@ def segment_vertices(
     if range_sigma is not None:
         range_sigma = check_range_sigma(distance, np.asarray(range_sigma)[::stride, ::stride] if np.ndim(range_sigma) else range_sigma)
     planes = np.asarray(segmentation.planes, dtype=np.float64)
-    # One compiled pass sorts the valid pixels by segment, copies out their points and pixels (each surface's
-    # are then a slice: NumPy's gathers cost as much as the pass), and sees each one's noise along its plane's normal.
-    starts, vertices, pixels, along, squares = _gather_segments(
-        points, labels, distance, np.empty((0, 0)) if range_sigma is None else range_sigma, planes, segmentation.n_segments,
-        stride)
+    # One compiled pass sorts the valid pixels by segment and copies out each one's points, pixels, plane
+    # normal and noise along it (each surface's are then a slice: NumPy's gathers cost as much as the pass).
+    residuals = np.asarray(segmentation.residuals, dtype=np.float64)
+    starts, vertices, pixels, normals, ul1 = _gather_segments(
+        points, labels, distance, np.empty((0, 0)) if range_sigma is None else range_sigma, planes, residuals,
+        segmentation.n_segments, stride)
     surfaces = []
     for label in range(1, segmentation.n_segments + 1):
         begin, end = starts[label], starts[label + 1]
         if end == begin:
             continue
-        plane = planes[label]
-        count = end - begin
-        normals = np.broadcast_to((plane[:3] if np.isfinite(plane).all() else np.full(3, np.nan)).astype(np.float32), (count, 3))
         uncertainty = {}
         if range_sigma is not None:
-            uncertainty["UL1"] = _denoised(along[begin:end], segmentation.residuals[label], math.sqrt(squares[label] / count))
-        if np.isfinite(segmentation.residuals[label]):
-            uncertainty["UL2"] = np.full(count, segmentation.residuals[label], np.float32)
+            uncertainty["UL1"] = ul1[begin:end]
+        if np.isfinite(residuals[label]):
+            uncertainty["UL2"] = np.full(end - begin, residuals[label], np.float32)
         surfaces.append(Surface(
-            vertices=vertices[begin:end], faces=np.zeros((0, 3), np.int32), normals=normals,
-            pixels=pixels[begin:end], plane=plane, segment=label,
-            uncertainty=uncertainty,
+            vertices=vertices[begin:end], faces=np.zeros((0, 3), np.int32), normals=normals[begin:end],
+            pixels=pixels[begin:end], plane=planes[label], segment=label, uncertainty=uncertainty,
         ))
     return surfaces
 
 
 @numba.njit(**_JIT)
-def _gather_segments(points, labels, distance, sigma, planes, n_segments, stride):  # pragma: no cover - compiled
+def _gather_segments(points, labels, distance, sigma, planes, residuals, n_segments, stride):  # pragma: no cover - compiled
     """The valid labelled pixels grouped by label (row-major within each), with their noise along the normal.
 
     Returns ``starts`` (label k's pixels are ``starts[k]:starts[k + 1]``),
-    their points (float32) and ``(row, column)`` times ``stride`` (int32,
-    the full grid's pixel), ``sigma |cos(incidence)|`` per pixel (the sigma
-    itself where the segment has no plane; empty without ``sigma``) and its
-    sum of squares per label.
+    their points (float32), ``(row, column)`` times ``stride`` (int32, the
+    full grid's pixel), their segment's plane normal (float32; NaN where it
+    has no plane) and their ``UL1`` (float32; empty without ``sigma``):
+    ``sigma |cos(incidence)|`` (the sigma itself where the segment has no
+    plane), scaled down to the segment's fit residual as `_denoised` does.
     """
     height, width = labels.shape
     counts = np.zeros(n_segments + 2, np.int64)
@@ -338,6 +336,7 @@ def _gather_segments(points, labels, distance, sigma, planes, n_segments, stride
     total = starts[-1]
     vertices = np.empty((total, 3), np.float32)
     pixels = np.empty((total, 2), np.int32)
+    normals = np.empty((total, 3), np.float32)
     with_sigma = sigma.shape[0] > 0
     along = np.empty(total if with_sigma else 0)
     squares = np.zeros(n_segments + 1)
@@ -360,7 +359,28 @@ def _gather_segments(points, labels, distance, sigma, planes, n_segments, stride
                     value *= cosine
                 along[k] = value
                 squares[label] += value * value
-    return starts, vertices, pixels, along, squares
+    planar = np.empty(n_segments + 1, np.bool_)
+    for label in range(1, n_segments + 1):
+        planar[label] = (planes[label, 0] == planes[label, 0]) & (planes[label, 1] == planes[label, 1]) & (
+            planes[label, 2] == planes[label, 2]) & (planes[label, 3] == planes[label, 3])
+        for k in range(starts[label], starts[label + 1]):
+            for axis in range(3):
+                normals[k, axis] = np.float32(planes[label, axis]) if planar[label] else np.nan
+    ul1 = np.empty(along.size, np.float32)
+    for label in range(1, n_segments + 1):
+        count = starts[label + 1] - starts[label]
+        factor = _denoising_factor(residuals[label], math.sqrt(squares[label] / count)) if count and with_sigma else 1.0
+        for k in range(starts[label], starts[label + 1] if with_sigma else starts[label]):
+            ul1[k] = np.float32(along[k] * factor)
+    return starts, vertices, pixels, normals, ul1
+
+
+@numba.njit(**_JIT)
+def _denoising_factor(residual, predicted):  # pragma: no cover - compiled
+    """What `_denoised` scales the sensor noise by: the fit residual over the predicted noise, at most 1."""
+    if residual == residual and abs(residual) != math.inf and predicted > 0:
+        return min(1.0, residual / predicted)
+    return 1.0
 
 
 def _denoised(along_normal: np.ndarray, residual: float, predicted: float) -> np.ndarray:
@@ -370,9 +390,7 @@ def _denoised(along_normal: np.ndarray, residual: float, predicted: float) -> np
     it is below what the sensor model predicts (``predicted``, the RMS of
     ``along_normal``), the noise is scaled down by their ratio.
     """
-    if math.isfinite(residual) and predicted > 0:
-        along_normal = along_normal * min(1.0, float(residual) / predicted)
-    return along_normal.astype(np.float32)
+    return (along_normal * _denoising_factor(float(residual), float(predicted))).astype(np.float32)
 
 
 def _segment_surface(points, distance, range_sigma, segmentation, label, rows, cols, faces) -> Surface:
