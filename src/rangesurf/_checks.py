@@ -69,8 +69,12 @@ def check_point_grid(points: Any, name: str = "points") -> np.ndarray:
         raise ValueError(f"{name} must be an organized (H, W, 3) grid, got shape {array.shape}")
     if not np.issubdtype(array.dtype, np.floating):
         raise ValueError(f"{name} must be a float array (NaN where invalid), got dtype {array.dtype}")
-    array = np.ascontiguousarray(array, dtype=np.float32)
-    n_infinite = _count_infinite(array.reshape(-1))
+    if array.dtype == np.float32 and not array.flags.c_contiguous:
+        # A decimated grid (a strided view): NumPy copies rows of 3-vectors three times slower than this loop.
+        array, n_infinite = _compact_grid(array)
+    else:
+        array = np.ascontiguousarray(array, dtype=np.float32)
+        n_infinite = _count_infinite(array.reshape(-1))
     if n_infinite:
         raise ValueError(f"{name} contain Inf ({n_infinite} values); mark missing values with NaN")
     return array
@@ -97,3 +101,19 @@ def _count_infinite(values):  # pragma: no cover - compiled
     for k in range(values.size):
         count += np.int64(abs(values[k]) == infinity)  # branch-free: vectorized
     return count
+
+
+@numba.njit(cache=True, nogil=True)
+def _compact_grid(points):  # pragma: no cover - compiled
+    """A C-contiguous copy of a float32 (H, W, 3) grid of any layout, and how many of its values are +-Inf."""
+    height, width = points.shape[0], points.shape[1]
+    compact = np.empty((height, width, 3), np.float32)
+    infinity = np.float32(np.inf)
+    count = 0
+    for i in range(height):
+        for j in range(width):
+            for axis in range(3):
+                value = points[i, j, axis]
+                compact[i, j, axis] = value
+                count += np.int64(abs(value) == infinity)
+    return compact, count

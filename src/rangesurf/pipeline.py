@@ -37,6 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
+from rangesurf._checks import check_point_grid
 from rangesurf.config import PipelineConfig
 from rangesurf.denoise import denoise_range
 from rangesurf.denoise.diffusion import remove_diffusion_bias
@@ -215,7 +216,8 @@ class Pipeline:
 
         projection = frame.sensor.projection if isinstance(frame.sensor.projection, PinholeProjection) else None
         step = self._decimation(frame)
-        icp_points, icp_sigma = points[::step, ::step], sigma[::step, ::step]
+        # Copied out once (normals, segmentation and the tracker's keyframe would each copy the strided view).
+        icp_points, icp_sigma = check_point_grid(points[::step, ::step]), sigma[::step, ::step]
         icp_projection = projection
         if projection is not None and step > 1:
             icp_projection = PinholeProjection(projection.fx / step, projection.fy / step, projection.cx / step,

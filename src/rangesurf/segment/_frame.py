@@ -105,7 +105,7 @@ def segment_planes(
         np.where(valid, distance, np.nan), np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width))
     )
     # The stages' own defaults, on inputs checked once here.
-    coarse_points = np.ascontiguousarray(points[::decimate, ::decimate])
+    coarse_points = check_point_grid(points[::decimate, ::decimate])
     coarse_sigma = np.ascontiguousarray(sigma[::decimate, ::decimate])
     coarse_projection = None
     if projection is not None:
