@@ -170,7 +170,7 @@ class PlanarPatch:
     # Bumped by every change of the cells, so that meshes and plane fits made from them can be cached.
     revision: int = field(default=0, compare=False)
     _plane: tuple[int, np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
-    _bounds: tuple | None = field(default=None, init=False, repr=False, compare=False)
+    _box: tuple[np.ndarray, np.ndarray] | None = field(default=None, init=False, repr=False, compare=False)
 
     def __post_init__(self) -> None:
         self.origin = np.asarray(self.origin, np.float64).reshape(3)
@@ -302,15 +302,23 @@ class PlanarPatch:
         return image, column0, row0
 
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """World axis-aligned bounding box (low, high) of the patch's cells (cached per revision)."""
-        if self._bounds is not None and self._bounds[0] == self.revision:
-            return self._bounds[1], self._bounds[2]
-        if self.n_cells == 0:
-            low = high = self.origin.copy()
-        else:
-            low, high = _cell_bounds(self._coords, self._cells, self._count, self.origin, self.axes, self.cell_size)
-        self._bounds = (self.revision, low, high)
-        return low, high
+        """A world axis-aligned box (low, high) around the patch's cells, each cell's square at its fused height.
+
+        Counted from the cells when first asked for, then widened by the
+        points each `fuse` brings (their box padded by a cell's diagonal:
+        a cell's fused position is a mean of its points, its square lies
+        within that of it) instead of counted again, which goes through every
+        cell of a large patch for the few a frame touches. So it may be
+        larger than the cells' own box (it does not shrink when cells are
+        removed or move), never smaller: for telling whether a patch may be
+        near something.
+        """
+        if self._box is None:
+            if self.n_cells == 0:
+                self._box = (self.origin.copy(), self.origin.copy())
+            else:
+                self._box = _cell_bounds(self._coords, self._cells, self._count, self.origin, self.axes, self.cell_size)
+        return self._box
 
     def distance_to(self, points: np.ndarray) -> np.ndarray:
         """Distance of world points from the fitted plane."""
@@ -361,6 +369,8 @@ class PlanarPatch:
             updated += new_updated
             added += new_added
             rejected += new_rejected
+        if self._box is not None:
+            _widen_box(self._box[0], self._box[1], points, math.sqrt(2.0) * self.cell_size)
         return (*self._fused(frame, updated, added), rejected)
 
     def absorb(self, other: PlanarPatch, frame: int) -> tuple[int, int]:
@@ -381,6 +391,7 @@ class PlanarPatch:
                              hh=weight * local[:, 2] ** 2 + spread)
         self.moments += _moments(weight, local[:, 0], local[:, 1], local[:, 2])
         result = self._accumulate(local, contributions, frame)
+        self._box = None  # counted afresh when next asked for
         self._frame_runs = GrowingArray((2,), np.int64, rows=runs_of(np.union1d(self.frames, other.frames)))
         self._views()
         return result
@@ -924,6 +935,15 @@ def _check_seen_through(origin, axes, cells, count, misses, rotation, translatio
         elif abs(gap) <= tolerance:
             misses[slot] = 0  # the surface is where the cell is
     return reached
+
+
+@numba.njit(**_JIT)
+def _widen_box(low, high, points, pad):  # pragma: no cover - compiled
+    """Widen the box (low, high) in place to hold the (N, 3) points padded by ``pad``."""
+    for k in range(points.shape[0]):
+        for axis in range(3):
+            low[axis] = min(low[axis], points[k, axis] - pad)
+            high[axis] = max(high[axis], points[k, axis] + pad)
 
 
 @numba.njit(**_JIT)
