@@ -38,6 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from rangesurf._checks import check_point_grid
+from rangesurf._grid import points_along_rays
 from rangesurf.config import PipelineConfig
 from rangesurf.denoise import denoise_range
 from rangesurf.denoise.diffusion import remove_diffusion_bias
@@ -209,7 +210,7 @@ class Pipeline:
 
         smooth = denoise_range(frame.range, method=self.config.denoise.method, sensor=frame.sensor,
                                intensity=frame.intensity, rays=frame.rays)
-        points = np.multiply(frame.rays, smooth[..., None], dtype=np.float32)
+        points = points_along_rays(np.ascontiguousarray(frame.rays), np.ascontiguousarray(smooth))
         finite = np.isfinite(smooth)
         sigma = frame.sensor.range_sigma(np.where(finite, smooth, 1.0), frame.intensity)
         lap("denoise")

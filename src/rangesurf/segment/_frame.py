@@ -13,7 +13,7 @@ from numpy.typing import ArrayLike
 from rangesurf._checks import check_point_grid, check_range_sigma
 from rangesurf.denoise import denoise_range
 from rangesurf.frame import PinholeProjection, RangeFrame
-from rangesurf._grid import point_ranges
+from rangesurf._grid import point_ranges, points_along_rays
 from rangesurf.normals import _normals_and_ranges, _point_grid, estimate_normals
 from rangesurf.segment._segmentation import Segmentation
 from rangesurf.segment.nxd import segment_nxd
@@ -181,7 +181,7 @@ def segment_frame(frame: RangeFrame, *, denoise: str = "diffusion", segmenter: s
     if segmenter not in SEGMENTERS:
         raise ValueError(f"segmenter must be one of {SEGMENTERS}, got {segmenter!r}")
     smooth = denoise_range(frame.range, method=denoise, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)
-    points = (frame.rays * smooth[..., None]).astype(np.float32)
+    points = points_along_rays(np.ascontiguousarray(frame.rays), np.ascontiguousarray(smooth))
     sigma = frame.sensor.range_sigma(np.where(np.isfinite(smooth), smooth, 1.0), frame.intensity)
     projection = frame.sensor.projection if isinstance(frame.sensor.projection, PinholeProjection) else None
     result = SegmentedFrame(range=smooth, points=points, range_sigma=sigma, segmentation=None, projection=projection)
