@@ -1,4 +1,4 @@
-"""A hash table from integer grid coordinates to slots, for sparse grids (TSDF blocks, patch cells).
+"""A hash table from integer grid coordinates to slots, for sparse 3-D grids (TSDF blocks; patch cells: `rangesurf._tilegrid`).
 
 Open addressing with linear probing over a power-of-two table, kept at most
 half full by the caller (which grows it and calls `rehash`). Keys are

@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf._growing import GrowingArray
-from rangesurf._hashgrid import empty_table, insert, lookup, rehash
+from rangesurf._tilegrid import TILE, CellIndex, block_of, find
 from rangesurf.mesh import Surface, _grid_faces
 
 __all__ = ["PlanarPatch", "Observations", "CELL_FIELDS", "runs_of"]
@@ -71,11 +71,6 @@ def _capacity_for(needed: int, capacity: int) -> int:
     while capacity < needed:
         capacity += capacity // 4
     return capacity
-
-
-def _table_size(capacity: int) -> int:
-    """Hash-table slots for ``capacity`` cells: a power of two, at most half full."""
-    return 1 << int(2 * capacity - 1).bit_length()
 
 
 def runs_of(frames: ArrayLike) -> np.ndarray:
@@ -177,8 +172,8 @@ class PlanarPatch:
         self.axes = np.asarray(self.axes, np.float64).reshape(3, 3)
         coordinates = np.asarray(self.coordinates, np.int32).reshape(-1, 2)
         count = len(coordinates)
-        # Cell storage grows by a quarter when full (`_grow`); a hash table finds a cell's row from its grid
-        # coordinates.
+        # Cell storage grows by a quarter when full (`_grow`); a tiled index finds a cell's row from its grid
+        # coordinates (`rangesurf._tilegrid`).
         capacity = _capacity_for(count, 0)
         self._coords = np.zeros((capacity, 3), np.int32)
         self._coords[:count, :2] = coordinates
@@ -189,8 +184,7 @@ class PlanarPatch:
                 raise ValueError(f"patch cell field {name!r} has {len(values)} values for {count} cells")
             self._cells[:count, index] = values
         self._count = count
-        self._table_keys, self._table_slots = empty_table(_table_size(capacity))
-        rehash(self._table_keys, self._table_slots, self._coords, count)
+        self._index = CellIndex.of(coordinates)
         self._stamps = np.zeros(capacity, np.int64)
         self._stamp = 0
         self._frame_runs = GrowingArray((2,), np.int64, rows=self.frame_runs)
@@ -227,10 +221,12 @@ class PlanarPatch:
             grown = np.zeros((capacity,) + old.shape[1:], old.dtype)
             grown[: self._count] = old[: self._count]
             setattr(self, name, grown)
-        if len(self._table_slots) < _table_size(capacity):
-            self._table_keys, self._table_slots = empty_table(_table_size(capacity))
-            rehash(self._table_keys, self._table_slots, self._coords, self._count)
         self._views()
+
+    def _make_room(self, column: int, row: int) -> None:
+        """Room for one more cell, at (column, row): storage and index."""
+        self._grow(self._count + 1)
+        self._index.make_room(column, row)
 
     @classmethod
     def from_plane(cls, plane: np.ndarray, points: np.ndarray, cell_size: float) -> PlanarPatch:
@@ -333,10 +329,11 @@ class PlanarPatch:
         """
         if self.n_cells == 0 or len(points) == 0:
             return 0
-        # Hash lookups around each point's cell, the occupied one first: cheaper than an occupancy image
+        # Index lookups around each point's cell, the occupied one first: cheaper than an occupancy image
         # of the whole patch once patches are large.
+        index = self._index
         return int(_touching(np.ascontiguousarray(points, np.float64), self.origin, self.axes, self.cell_size, int(reach),
-                             self._table_keys, self._table_slots, int(enough)))
+                             index.directory, index.blocks, index.tiles, int(enough)))
 
     # ------------------------------------------------------------------
     # Fusion.
@@ -359,13 +356,15 @@ class PlanarPatch:
         updated = added = rejected = 0
         start = 0
         while start < count:
-            # The kernel stops when the storage is full; it doubles then (not before: a large patch
-            # seen again needs few new cells, and room for every point would double it needlessly).
-            self._grow(self._count + 1)
-            start, self._count, new_updated, new_added, new_rejected = _fuse_points(
+            # The kernel stops at a new cell with no room for it (storage full, or the index not reaching it);
+            # room is made then (not before: a large patch seen again needs few new cells, and room for every
+            # point would double it needlessly).
+            start, self._count, new_updated, new_added, new_rejected, column, row = _fuse_points(
                 points, noise, fit, registration, plane, float(reach), self.origin, self.axes, self.cell_size, start,
-                self._coords, self._cells, self._count, self._table_keys, self._table_slots, self._stamps, self._stamp,
-                self._misses, self.moments)
+                self._coords, self._cells, self._count, self._index.directory, self._index.blocks, self._index.tiles,
+                self._stamps, self._stamp, self._misses, self.moments)
+            if start < count:
+                self._make_room(column, row)
             updated += new_updated
             added += new_added
             rejected += new_rejected
@@ -405,13 +404,14 @@ class PlanarPatch:
         updated = added = 0
         start = 0
         while start < len(columns):
-            # As in `fuse`: the storage doubles when the kernel finds it full.
-            self._grow(self._count + 1)
+            # As in `fuse`: room is made when the kernel stops at a cell it has none for.
             start, self._count, new_updated, new_added = _accumulate_cells(
-                columns, rows, table, start, self._coords, self._cells, self._count, self._table_keys,
-                self._table_slots, self._stamps, self._stamp, self._misses)
+                columns, rows, table, start, self._coords, self._cells, self._count, self._index.directory,
+                self._index.blocks, self._index.tiles, self._stamps, self._stamp, self._misses)
             updated += new_updated
             added += new_added
+            if start < len(columns):
+                self._make_room(columns[start], rows[start])
         return self._fused(frame, updated, added)
 
     def _fused(self, frame: int, updated: int, added: int) -> tuple[int, int]:
@@ -493,8 +493,7 @@ class PlanarPatch:
             array[:count] = array[: self._count][keep]
             array[count : self._count] = 0
         self._count = count
-        self._table_keys, self._table_slots = empty_table(len(self._table_slots))
-        rehash(self._table_keys, self._table_slots, self._coords, self._count)
+        self._index = CellIndex.of(self._coords[: self._count, :2])
         self._views()
         self.revision += 1
 
@@ -675,7 +674,7 @@ def _fitted_planes(moments, n_cells, axes, origin):  # pragma: no cover - compil
 
 
 @numba.njit(**_JIT)
-def _touching(points, origin, axes, cell_size, reach, table_keys, table_slots, enough):  # pragma: no cover - compiled
+def _touching(points, origin, axes, cell_size, reach, directory, blocks, tiles, enough):  # pragma: no cover - compiled
     """Points whose cell in the patch frame has an occupied cell within ``reach`` cells (chessboard distance),
     counted up to ``enough`` (all when 0)."""
     count = 0
@@ -685,13 +684,13 @@ def _touching(points, origin, axes, cell_size, reach, table_keys, table_slots, e
         dx, dy, dz = points[k, 0] - origin[0], points[k, 1] - origin[1], points[k, 2] - origin[2]
         column = np.int32(np.floor((dx * axes[0, 0] + dy * axes[0, 1] + dz * axes[0, 2]) / cell_size))
         row = np.int32(np.floor((dx * axes[1, 0] + dy * axes[1, 1] + dz * axes[1, 2]) / cell_size))
-        if lookup(table_keys, table_slots, column, row, 0) >= 0:
+        if find(directory, blocks, tiles, column, row) >= 0:
             count += 1
             continue
         found = False
         for di in range(-reach, reach + 1):
             for dj in range(-reach, reach + 1):
-                if lookup(table_keys, table_slots, column + dj, row + di, 0) >= 0:
+                if find(directory, blocks, tiles, column + np.int32(dj), row + np.int32(di)) >= 0:
                     found = True
                     break
             if found:
@@ -702,13 +701,14 @@ def _touching(points, origin, axes, cell_size, reach, table_keys, table_slots, e
 
 @numba.njit(**_JIT)
 def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, cell_size, start, coords, cells, count,
-                 table_keys, table_slots, stamps, stamp, misses, moments):  # pragma: no cover - compiled
+                 directory, blocks, tiles, stamps, stamp, misses, moments):  # pragma: no cover - compiled
     """`PlanarPatch.fuse` from point ``start`` on, in one pass: each point within ``reach`` of ``plane``
     into the patch frame, its weight 1 / (total variance), its sums (the `CELL_FIELDS`) into its cell and
     the patch's plane-fit moments.
 
-    Stops early like `_accumulate_cells` (which it mirrors, for fusion's own sums) when the storage is
-    full; returns (next point, cell count, cells updated, cells added, points beyond reach).
+    Stops early like `_accumulate_cells` (which it mirrors, for fusion's own sums) at a new cell it has
+    no room for; returns (next point, cell count, cells updated, cells added, points beyond reach, and the
+    column and row of the cell it stopped at).
     """
     updated = 0
     added = 0
@@ -719,7 +719,7 @@ def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, c
     # The moments are summed in registers (in the same order, so to the same bits) and stored at the end.
     m0, m1, m2, m3, m4, m5, m6, m7, m8 = (moments[0], moments[1], moments[2], moments[3], moments[4], moments[5],
                                           moments[6], moments[7], moments[8])
-    stop = points.shape[0]
+    stop, stop_column, stop_row = points.shape[0], np.int32(0), np.int32(0)
     for k in range(start, points.shape[0]):
         if abs(points[k, 0] * plane[0] + points[k, 1] * plane[1] + points[k, 2] * plane[2] + plane[3]) > reach:
             rejected += 1
@@ -730,10 +730,10 @@ def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, c
         h = dx * axes[2, 0] + dy * axes[2, 1] + dz * axes[2, 2]
         column, row = np.int32(np.floor(u / cell_size)), np.int32(np.floor(v / cell_size))
         if slot < 0 or column != last_column or row != last_row:
-            slot, count, is_updated, is_added = _cell_slot(column, row, coords, count, table_keys, table_slots, stamps,
+            slot, count, is_updated, is_added = _cell_slot(column, row, coords, count, directory, blocks, tiles, stamps,
                                                            stamp, misses)
             if slot < 0:
-                stop = k
+                stop, stop_column, stop_row = k, column, row
                 break
             updated += is_updated
             added += is_added
@@ -761,25 +761,29 @@ def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, c
         m8 += wv * h
     moments[0], moments[1], moments[2], moments[3], moments[4] = m0, m1, m2, m3, m4
     moments[5], moments[6], moments[7], moments[8] = m5, m6, m7, m8
-    return stop, count, updated, added, rejected
+    return stop, count, updated, added, rejected, stop_column, stop_row
 
 
 @numba.njit(**_JIT, inline="always")
-def _cell_slot(column, row, coords, count, table_keys, table_slots, stamps, stamp, misses):  # pragma: no cover - compiled
+def _cell_slot(column, row, coords, count, directory, blocks, tiles, stamps, stamp, misses):  # pragma: no cover - compiled
     """The storage slot of cell (column, row), opened if new, and marked seen (``misses`` 0).
 
     Returns (slot, cell count, updated, added): -1 as the slot when a new
-    cell finds the storage full; ``updated`` and ``added`` are 1 when this
-    call first touches an existing cell in this round (``stamp``) or opens
-    one, else 0.
+    cell finds no room (the storage full, or the index not reaching it:
+    `PlanarPatch._make_room`); ``updated`` and ``added`` are 1 when this call
+    first touches an existing cell in this round (``stamp``) or opens one,
+    else 0.
     """
-    slot = lookup(table_keys, table_slots, column, row, 0)
+    block = block_of(directory, blocks, tiles, column, row)
+    if block < 0:
+        return -1, count, 0, 0
+    slot = blocks[block, row & (TILE - 1), column & (TILE - 1)]
     if slot < 0:
         if count >= coords.shape[0]:
             return -1, count, 0, 0
         slot = count
         coords[slot, 0], coords[slot, 1], coords[slot, 2] = column, row, 0
-        insert(table_keys, table_slots, column, row, 0, slot)
+        blocks[block, row & (TILE - 1), column & (TILE - 1)] = slot
         stamps[slot] = stamp
         misses[slot] = 0
         return slot, count + 1, 0, 1
@@ -792,20 +796,20 @@ def _cell_slot(column, row, coords, count, table_keys, table_slots, stamps, stam
 
 
 @numba.njit(**_JIT)
-def _accumulate_cells(columns, rows, table, start, coords, cells, count, table_keys, table_slots, stamps, stamp,
+def _accumulate_cells(columns, rows, table, start, coords, cells, count, directory, blocks, tiles, stamps, stamp,
                       misses):  # pragma: no cover - compiled
     """Add rows of ``table`` into the cells at (column, row), opening cells as needed, from point ``start``.
 
-    Stops early (returning where) when the storage is full; returns (next
-    point, cell count, cells updated, cells added), counting each cell once
-    per call (``stamp``).
+    Stops early (returning where) at a new cell it has no room for; returns
+    (next point, cell count, cells updated, cells added), counting each cell
+    once per call (``stamp``).
     """
     updated = 0
     added = 0
     fields = table.shape[1]
     for k in range(start, columns.shape[0]):
-        slot, count, is_updated, is_added = _cell_slot(columns[k], rows[k], coords, count, table_keys, table_slots, stamps,
-                                                       stamp, misses)
+        slot, count, is_updated, is_added = _cell_slot(columns[k], rows[k], coords, count, directory, blocks, tiles,
+                                                       stamps, stamp, misses)
         if slot < 0:
             return k, count, updated, added
         updated += is_updated
