@@ -1302,11 +1302,13 @@ def _projective_pass(
     Every paired residual is written to ``residuals`` (for the next robust
     scale); returns (information, gradient, pairs, inliers, sum of the
     inliers' squared residuals, sum of their squared normalized residuals),
-    inliers being the pairs of nonzero weight. The inliers' Jacobian rows,
-    residuals and weights go to ``rows`` (8, C) and are summed every C
-    inliers by `_accumulate`: the branchy pairing and the branch-free sums
-    each compile to a tight loop (a third faster than one loop doing both),
-    and C columns stay in cache.
+    inliers being the pairs of nonzero weight. The source points go in
+    chunks of C (``rows`` is (8, C)): a branch-free loop moves and projects
+    a chunk (which the compiler vectorises), a second pairs its points with
+    their pixels and writes the inliers' Jacobian rows, residuals and
+    weights to ``rows``, which `_accumulate` sums every C inliers. (Pairing
+    point by point in one loop with the projection, and summing the 27
+    products inlier by inlier, took 40 % longer.)
 
     With range noise (``source_noise``, sigma^2 / |p|^2 per source point,
     and the target's share of the variance ``target_variance`` per pixel;
@@ -1324,65 +1326,77 @@ def _projective_pass(
     t20, t21, t22, t23 = transform[2, 0], transform[2, 1], transform[2, 2], transform[2, 3]
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     height, width = grid.shape[0], grid.shape[1]
+    targets = grid.reshape(height * width, 3)
+    target_normals = normals.reshape(height * width, 3)
     limit = max_distance * max_distance
     with_source, with_target = source_noise.shape[0] > 0, target_variance.shape[0] > 0
+    flat_variance = target_variance.reshape(target_variance.size)
+    chunk = rows.shape[1]
+    moved = np.empty((3, chunk))
+    pixel = np.empty(chunk, np.int64)
+    weighted = np.empty((6, chunk))
     count = inliers = filled = 0
     squares = normalized_squares = 0.0
-    for k in range(source.shape[0]):
-        x, y, z = source[k, 0], source[k, 1], source[k, 2]
-        mx = t00 * x + t01 * y + t02 * z + t03
-        my = t10 * x + t11 * y + t12 * z + t13
-        mz = t20 * x + t21 * y + t22 * z + t23
-        if not (mz > 0.0):
-            continue
-        # Nearest pixel (truncation of a non-negative value rounds; negatives are rejected below).
-        fu = fx * mx / mz + cx + 0.5
-        fv = fy * my / mz + cy + 0.5
-        if not (fu >= 0.0 and fv >= 0.0 and fu < width and fv < height):
-            continue
-        u, v = int(fu), int(fv)
-        tz = grid[v, u, 2]
-        nz = normals[v, u, 2]
-        if not (tz == tz and nz == nz):
-            continue
-        tx, ty = grid[v, u, 0], grid[v, u, 1]
-        nx, ny = normals[v, u, 0], normals[v, u, 1]
-        if (mx - tx) ** 2 + (my - ty) ** 2 + (mz - tz) ** 2 > limit:
-            continue
-        residual = (mx - tx) * nx + (my - ty) * ny + (mz - tz) * nz
-        inverse_variance = 1.0
-        normalized = residual
-        if with_source or with_target:
-            variance = 0.0
-            if with_target:
-                variance += target_variance[v, u]
-            if with_source:
-                # The source's line of sight in the target frame: from its sensor (the translation) to the moved point.
-                variance += _along_normal(source_noise[k], nx, ny, nz, mx - t03, my - t13, mz - t23, min_incidence)
-            inverse_variance = 1.0 / variance
-            # The root only where there are sigmas: unweighted, every pair would pay for it.
-            normalized = residual * math.sqrt(inverse_variance)
-        residuals[count] = normalized
-        count += 1
-        ratio = normalized / scale
-        if abs(ratio) >= 1.0:
-            continue
-        inliers += 1
-        squares += residual * residual
-        normalized_squares += normalized * normalized
-        rows[0, filled] = my * nz - mz * ny
-        rows[1, filled] = mz * nx - mx * nz
-        rows[2, filled] = mx * ny - my * nx
-        rows[3, filled] = nx
-        rows[4, filled] = ny
-        rows[5, filled] = nz
-        rows[6, filled] = residual
-        rows[7, filled] = (1.0 - ratio * ratio) ** 2 * inverse_variance
-        filled += 1
-        if filled == rows.shape[1]:
-            _accumulate(rows, filled, sums)
-            filled = 0
-    _accumulate(rows, filled, sums)
+    for begin in range(0, source.shape[0], chunk):
+        end = min(begin + chunk, source.shape[0])
+        for k in range(begin, end):
+            x, y, z = source[k, 0], source[k, 1], source[k, 2]
+            mx = t00 * x + t01 * y + t02 * z + t03
+            my = t10 * x + t11 * y + t12 * z + t13
+            mz = t20 * x + t21 * y + t22 * z + t23
+            # Nearest pixel (truncation of a non-negative value rounds; the rest are no pixel).
+            fu = fx * mx / mz + cx + 0.5
+            fv = fy * my / mz + cy + 0.5
+            inside = (mz > 0.0) & (fu >= 0.0) & (fv >= 0.0) & (fu < width) & (fv < height)
+            moved[0, k - begin], moved[1, k - begin], moved[2, k - begin] = mx, my, mz
+            pixel[k - begin] = np.int64(fv) * width + np.int64(fu) if inside else -1
+        for i in range(end - begin):
+            target = pixel[i]
+            if target < 0:
+                continue
+            tz = targets[target, 2]
+            nz = target_normals[target, 2]
+            if not (tz == tz and nz == nz):
+                continue
+            mx, my, mz = moved[0, i], moved[1, i], moved[2, i]
+            tx, ty = targets[target, 0], targets[target, 1]
+            nx, ny = target_normals[target, 0], target_normals[target, 1]
+            if (mx - tx) ** 2 + (my - ty) ** 2 + (mz - tz) ** 2 > limit:
+                continue
+            residual = (mx - tx) * nx + (my - ty) * ny + (mz - tz) * nz
+            inverse_variance = 1.0
+            normalized = residual
+            if with_source or with_target:
+                variance = 0.0
+                if with_target:
+                    variance += flat_variance[target]
+                if with_source:
+                    # The source's line of sight in the target frame: from its sensor (the translation) to the moved point.
+                    variance += _along_normal(source_noise[begin + i], nx, ny, nz, mx - t03, my - t13, mz - t23, min_incidence)
+                inverse_variance = 1.0 / variance
+                # The root only where there are sigmas: unweighted, every pair would pay for it.
+                normalized = residual * math.sqrt(inverse_variance)
+            residuals[count] = normalized
+            count += 1
+            ratio = normalized / scale
+            if abs(ratio) >= 1.0:
+                continue
+            inliers += 1
+            squares += residual * residual
+            normalized_squares += normalized * normalized
+            rows[0, filled] = my * nz - mz * ny
+            rows[1, filled] = mz * nx - mx * nz
+            rows[2, filled] = mx * ny - my * nx
+            rows[3, filled] = nx
+            rows[4, filled] = ny
+            rows[5, filled] = nz
+            rows[6, filled] = residual
+            rows[7, filled] = (1.0 - ratio * ratio) ** 2 * inverse_variance
+            filled += 1
+            if filled == chunk:
+                _accumulate(rows, filled, sums, weighted)
+                filled = 0
+    _accumulate(rows, filled, sums, weighted)
     information = np.empty((6, 6))
     for a in range(6):
         for b in range(a, 6):
@@ -1421,21 +1435,25 @@ def _pair_variances(normals, target_variance, rays, source_noise, min_incidence)
 
 
 @numba.njit(**_JIT)
-def _accumulate(rows, filled, sums):  # pragma: no cover - compiled
-    """Add sum_k w_k J_ka J_kb (b < 6) and sum_k w_k J_ka r_k (b = 6) of the first ``filled`` columns to ``sums``, a <= b."""
-    # Column by column into all 27 sums at once: each sum still adds the same products (w_k J_ka) J_kb in
-    # column order (the same bits), but its chain of dependent additions now overlaps the other 26, where one
-    # sum at a time waited on every addition (twice as fast).
-    totals = np.zeros((6, 7))
-    for k in range(filled):
-        weight = rows[7, k]
-        for a in range(6):
-            weighted = weight * rows[a, k]
-            for b in range(a, 7):
-                totals[a, b] += weighted * rows[b, k]
+def _accumulate(rows, filled, sums, weighted):  # pragma: no cover - compiled
+    """Add sum_k w_k J_ka J_kb (b < 6) and sum_k w_k J_ka r_k (b = 6) of the first ``filled`` columns of
+    ``rows`` to ``sums``, a <= b; ``weighted`` (6, C) is room for w_k J_ka."""
+    for a in range(6):
+        for k in range(filled):
+            weighted[a, k] = rows[7, k] * rows[a, k]
     for a in range(6):
         for b in range(a, 7):
-            sums[a, b] += totals[a, b]
+            sums[a, b] += _dot(weighted[a], rows[b], filled)
+
+
+@numba.njit(cache=True, nogil=True, fastmath={"reassoc"})
+def _dot(left, right, count):  # pragma: no cover - compiled
+    """``left[:count] . right[:count]``, summed in any order: the compiler vectorises it (27 of these over a
+    chunk of inliers are four times faster than summing the 27 products inlier by inlier)."""
+    total = 0.0
+    for k in range(count):
+        total += left[k] * right[k]
+    return total
 
 
 @numba.njit(**_JIT)
