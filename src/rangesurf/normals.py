@@ -199,7 +199,7 @@ def _normals_and_ranges(
     sigma_or_nan = np.full(distance.shape, np.nan, np.float32) if sigma is None else sigma
     usable, jumps, sigma_ok = _spikes_and_jumps(distance, valid, sigma_or_nan, float(depth_jump), unchecked)
     if not sigma_ok:
-        check_range_sigma(np.where(valid, distance, np.nan), range_sigma)  # raises, in the shared wording
+        check_range_sigma(distance, range_sigma)  # raises, in the shared wording
 
     if method == "cross":
         normals, radius = _cross_normals(points, usable, jumps)
@@ -321,7 +321,7 @@ def _noise_sigma(range_sigma: Any, distance: np.ndarray, valid: np.ndarray) -> t
         return None, False
     if isinstance(range_sigma, np.ndarray) and range_sigma.shape == valid.shape and range_sigma.dtype in (np.float32, np.float64):
         return np.ascontiguousarray(range_sigma), True
-    return check_range_sigma(np.where(valid, distance, np.nan), range_sigma), False
+    return check_range_sigma(distance, range_sigma), False
 
 
 def _check_window(window: Any, name: str) -> int:

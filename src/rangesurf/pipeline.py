@@ -428,15 +428,33 @@ def _median_footprint(frame: RangeFrame, distance: np.ndarray, *, rows: int = 4,
 
     On every ``rows``-th row, the ray pairs starting at every ``columns``-th column.
     """
-    rays = frame.rays[::rows]
-    right, left = rays[:, 1::columns], rays[:, : rays.shape[1] - 1 : columns]
-    # Component by component: NumPy's sum over a strided last axis of 3 took ten times as long.
-    dot = right[..., 0] * left[..., 0] + right[..., 1] * left[..., 1] + right[..., 2] * left[..., 2]
-    cosine = np.clip(dot, -1.0, 1.0)
-    angle = np.arccos(cosine)
-    footprint = angle * distance[::rows, 1::columns]
+    footprint = _ray_angles(frame.rays, rows, columns) * distance[::rows, 1::columns]
     footprint = footprint[np.isfinite(footprint) & (footprint > 0)]
     return float(np.median(footprint)) if footprint.size else 0.0
+
+
+def _ray_angles(rays: np.ndarray, rows: int, columns: int) -> np.ndarray:
+    """Angles between horizontally neighbouring rays, sampled as `_median_footprint` samples them.
+
+    A sensor's rays are one read-only array that all its frames share
+    (`SensorModel.rays`): their angles are kept for the next frame (at 640x480
+    the arc cosines took 0.3 ms of every frame).
+    """
+    cached = _RAY_ANGLES.get((rows, columns))
+    if cached is not None and cached[0] is rays:
+        return cached[1]
+    sampled = rays[::rows]
+    right, left = sampled[:, 1::columns], sampled[:, : sampled.shape[1] - 1 : columns]
+    # Component by component: NumPy's sum over a strided last axis of 3 took ten times as long.
+    dot = right[..., 0] * left[..., 0] + right[..., 1] * left[..., 1] + right[..., 2] * left[..., 2]
+    angles = np.arccos(np.clip(dot, -1.0, 1.0))
+    if not rays.flags.writeable:
+        _RAY_ANGLES[(rows, columns)] = (rays, angles)
+    return angles
+
+
+# (rows, columns) -> (the read-only rays, their sampled angles): `_ray_angles`.
+_RAY_ANGLES: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
 
 
 @functools.cache

@@ -102,7 +102,7 @@ def segment_planes(
     if n_infinite:
         check_point_grid(points)  # raises, in the shared wording
     sigma = check_range_sigma(
-        np.where(valid, distance, np.nan), np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width))
+        distance, np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width))
     )
     # The stages' own defaults, on inputs checked once here.
     coarse_points = check_point_grid(points[::decimate, ::decimate])

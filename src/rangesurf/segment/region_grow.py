@@ -182,7 +182,7 @@ def grow_regions(
         raise ValueError(f"min_size must be an integer >= 1, got {min_size!r}")
 
     distance, valid, _ = point_ranges(points)
-    sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
+    sigma = check_range_sigma(distance, range_sigma)
     return _grow(points, normals, sigma, distance, valid, float(distance_sigmas), float(max_angle), float(depth_jump), int(min_size), merge)
 
 
@@ -300,7 +300,7 @@ def refine_upsampled(
     if coarse.labels.shape != expected:
         raise ValueError(f"coarse labels {coarse.labels.shape} do not match ({height}, {width}) decimated by {factor}: {expected}")
     distance, valid = ranges(points)
-    sigma = check_range_sigma(np.where(valid, distance, np.nan), range_sigma)
+    sigma = check_range_sigma(distance, range_sigma)
     return _refine_upsampled(points, distance, valid, sigma, coarse, int(factor), float(distance_sigmas), float(depth_jump))
 
 
