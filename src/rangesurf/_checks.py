@@ -32,7 +32,7 @@ def check_range_image(range_image: Any, name: str = "range image", *, dtype: Any
     if dtype is not None:
         image = np.ascontiguousarray(image, dtype=dtype)
     if np.issubdtype(image.dtype, np.floating):
-        n_infinite = int(np.count_nonzero(np.isinf(image)))
+        n_infinite = int(_count_infinite(image.ravel()))
         if n_infinite:
             raise ValueError(f"{name} contains Inf ({n_infinite} values); mark missing returns with NaN")
     return image

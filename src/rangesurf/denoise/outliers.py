@@ -396,10 +396,24 @@ def _relative_noise(image: np.ndarray) -> float:
 
 
 def _finish(image: np.ndarray, removed: np.ndarray, return_mask: bool):
-    removed = removed & ~np.isnan(image)
-    result = image.copy()
-    result[removed] = np.nan
+    result, removed = _without(image, np.ascontiguousarray(removed, dtype=np.bool_))
     return (result, removed) if return_mask else result
+
+
+@numba.njit(**_JIT)
+def _without(image, removed):  # pragma: no cover - compiled
+    """A copy of ``image`` with the ``removed`` pixels NaN, and which of them had a reading (one pass: NumPy's
+    masks and boolean assignment took 0.25 ms of a 640x480 frame)."""
+    result = np.empty_like(image)
+    taken = np.empty(image.shape, np.bool_)
+    flat_image, flat_removed = image.reshape(image.size), removed.reshape(removed.size)
+    flat_result, flat_taken = result.reshape(result.size), taken.reshape(taken.size)
+    for k in range(flat_image.size):
+        value = flat_image[k]
+        gone = flat_removed[k] & (value == value)
+        flat_taken[k] = gone
+        flat_result[k] = np.nan if gone else value
+    return result, taken
 
 
 # --------------------------------------------------------------------------
