@@ -325,6 +325,7 @@ class GlobalModel:
             self.cell_size = _default_cell_size(surfaces)
         counts = dict(fused=0, created=0, joined=0, cells_updated=0, cells_added=0, rejected=0, nonplanar=0)
         rotation, translation = pose[:3, :3], pose[:3, 3]
+        bounded = _bounded(pose_covariance)
         for surface in surfaces:
             if surface.n_vertices == 0:
                 continue
@@ -337,7 +338,7 @@ class GlobalModel:
             normal = rotation @ surface.plane[:3]
             scale = np.linalg.norm(normal)
             plane = np.append(normal, surface.plane[3] - normal @ translation) / scale
-            observations = _observations(surface, points, plane[:3], pose_covariance)
+            observations = _observations(surface, points, plane[:3], bounded)
             self._merge(plane, observations, frame, counts)
         self._poses.append(pose[:3])
         self._timestamps.append(float(frame if timestamp is None else timestamp))
@@ -386,7 +387,7 @@ class GlobalModel:
         unchanged = ModelAlignment(pose.copy(), prior.copy(), 0, 0.0, False)
         if not self.patches or self.cell_size is None:
             return unchanged
-        bounded = np.where(np.isfinite(prior), prior, _UNCONSTRAINED_VARIANCE)
+        bounded = _bounded(prior)
         rotation, translation = pose[:3, :3], pose[:3, 3]
         pairs, shares = [], []
         for surface in surfaces:
@@ -875,11 +876,17 @@ def _add_plane_terms(points, variance, placed, plane, pose, share, information, 
                 information[a, b] += weighted * row[b]
 
 
-def _observations(surface: Surface, points: np.ndarray, normal: np.ndarray, covariance: np.ndarray | None) -> Observations:
+def _bounded(covariance: np.ndarray | None) -> np.ndarray:
+    """A pose covariance for `_observations`: unconstrained directions of a degenerate registration (inf) count
+    as 100 m (rad) standard deviations (vertices they move get next to no weight, vertices they do not move are
+    unaffected); no covariance, an exact pose."""
+    return np.zeros((6, 6)) if covariance is None else np.where(np.isfinite(covariance), covariance, _UNCONSTRAINED_VARIANCE)
+
+
+def _observations(surface: Surface, points: np.ndarray, normal: np.ndarray, bounded: np.ndarray) -> Observations:
+    """A surface's world points with their noise, fit and registration variances along ``normal``; ``bounded``
+    is the pose's covariance (`_bounded`)."""
     empty = np.zeros(0, np.float32)
-    # Unconstrained directions of a degenerate registration (inf) count as 100 m (rad) standard deviations:
-    # vertices they move get next to no weight, vertices they do not move are unaffected.
-    bounded = np.zeros((6, 6)) if covariance is None else np.where(np.isfinite(covariance), covariance, _UNCONSTRAINED_VARIANCE)
     points = np.ascontiguousarray(points, np.float64)
     noise, fit, registration, median = _variances(
         points, surface.uncertainty.get("UL1", empty), surface.uncertainty.get("UL2", empty),
