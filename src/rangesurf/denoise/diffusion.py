@@ -925,17 +925,22 @@ def _pair_scales_kernel(image, sigma, factor):  # pragma: no cover - compiled
     scale_south = np.zeros((height, columns), np.float32)
     largest = np.finfo(np.float32).max
     n_bad = 0
+    # Row by row, in branch-free loops the compiler vectorises (a branch per pixel took three times as long).
+    # With a bad sigma anywhere the scales are not used (the caller raises), so only pairs of two readings
+    # need their scale right.
     for i in range(height):
+        here, noise = image[i], sigma[i]
         for j in range(width):
-            if image[i, j] == image[i, j]:
-                value = sigma[i, j]
-                if not (value > 0 and value < np.inf):
-                    n_bad += 1
-                    continue
-                if j + 1 < width and image[i, j + 1] == image[i, j + 1]:
-                    scale_east[i, j] = min(factor / (_SQRT2 * min(value, sigma[i, j + 1])), largest)
-                if i + 1 < height and image[i + 1, j] == image[i + 1, j]:
-                    scale_south[i, j] = min(factor / (_SQRT2 * min(value, sigma[i + 1, j])), largest)
+            n_bad += np.int64((here[j] == here[j]) & ~((noise[j] > 0) & (noise[j] < np.inf)))
+        east = scale_east[i]
+        for j in range(width - 1):
+            value = min(factor / (_SQRT2 * min(noise[j], noise[j + 1])), largest)
+            east[j] = value if (here[j] == here[j]) & (here[j + 1] == here[j + 1]) else np.float32(0.0)
+        if i + 1 < height:
+            below, noise_below, south = image[i + 1], sigma[i + 1], scale_south[i]
+            for j in range(width):
+                value = min(factor / (_SQRT2 * min(noise[j], noise_below[j])), largest)
+                south[j] = value if (here[j] == here[j]) & (below[j] == below[j]) else np.float32(0.0)
     return scale_east, scale_south, n_bad
 
 
