@@ -23,7 +23,7 @@ from __future__ import annotations
 import json
 import math
 import os
-from dataclasses import astuple, dataclass, fields
+from dataclasses import dataclass, fields
 from pathlib import Path
 
 import numba
@@ -102,6 +102,10 @@ class MergeStep:
     nonplanar: int
 
 
+# The order of `MergeStep`'s fields, as the history stores them.
+_STEP_FIELDS = tuple(field.name for field in fields(MergeStep))
+
+
 @dataclass(frozen=True)
 class ModelAlignment:
     """What `GlobalModel.align` did with a frame's pose.
@@ -136,7 +140,8 @@ class _PatchTable:
     """
 
     def __init__(self, count: int) -> None:
-        self.revisions = np.full(count, -1, np.int64)
+        # A list: compared with each patch's revision in a Python loop, NumPy scalars would cost ten times as much.
+        self.revisions = [-1] * count
         self.normals = np.empty((count, 3))
         self.lows = np.empty((count, 3))
         self.highs = np.empty((count, 3))
@@ -144,6 +149,7 @@ class _PatchTable:
         self.sizes = np.empty(count, np.int64)
 
     def refresh(self, patches: list[PlanarPatch]) -> None:
+        """Refresh the rows of the patches whose revision moved on."""
         for index, patch in enumerate(patches):
             if self.revisions[index] != patch.revision:
                 self.revisions[index] = patch.revision
@@ -336,14 +342,16 @@ class GlobalModel:
                     self.others.append(_moved(surface, points, rotation))
                 continue
             normal = rotation @ surface.plane[:3]
-            scale = np.linalg.norm(normal)
-            plane = np.append(normal, surface.plane[3] - normal @ translation) / scale
+            plane = np.empty(4)
+            plane[:3], plane[3] = normal, surface.plane[3] - normal @ translation
+            plane /= math.sqrt(normal @ normal)
             observations = _observations(surface, points, plane[:3], bounded)
             self._merge(plane, observations, frame, counts)
         self._poses.append(pose[:3])
         self._timestamps.append(float(frame if timestamp is None else timestamp))
         step = MergeStep(frame=frame, **counts)
-        self._history.append(astuple(step))
+        # Field by field: `dataclasses.astuple` copies each value deeply, ten times as slow.
+        self._history.append(tuple(getattr(step, name) for name in _STEP_FIELDS))
         return step
 
     def align(self, surfaces: list[Surface], T_world_sensor: ArrayLike, covariance: ArrayLike) -> ModelAlignment:
