@@ -714,7 +714,7 @@ def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, c
     added = 0
     rejected = 0
     # Neighbouring pixels' vertices often share a cell (simulated arena: a third of the points on the SR-3000, an
-    # eighth on the Kinect): the previous point's cell is tried before the hash table.
+    # eighth on the Kinect): the previous point's cell is tried before the index.
     last_column, last_row, slot = np.int32(0), np.int32(0), -1
     # The moments are summed in registers (in the same order, so to the same bits) and stored at the end.
     m0, m1, m2, m3, m4, m5, m6, m7, m8 = (moments[0], moments[1], moments[2], moments[3], moments[4], moments[5],
