@@ -359,19 +359,19 @@ def _gather_segments(points, labels, distance, sigma, planes, residuals, n_segme
                     value *= cosine
                 along[k] = value
                 squares[label] += value * value
-    planar = np.empty(n_segments + 1, np.bool_)
-    for label in range(1, n_segments + 1):
-        planar[label] = (planes[label, 0] == planes[label, 0]) & (planes[label, 1] == planes[label, 1]) & (
-            planes[label, 2] == planes[label, 2]) & (planes[label, 3] == planes[label, 3])
-        for k in range(starts[label], starts[label + 1]):
-            for axis in range(3):
-                normals[k, axis] = np.float32(planes[label, axis]) if planar[label] else np.nan
     ul1 = np.empty(along.size, np.float32)
     for label in range(1, n_segments + 1):
-        count = starts[label + 1] - starts[label]
-        factor = _denoising_factor(residuals[label], math.sqrt(squares[label] / count)) if count and with_sigma else 1.0
-        for k in range(starts[label], starts[label + 1] if with_sigma else starts[label]):
-            ul1[k] = np.float32(along[k] * factor)
+        first, last = starts[label], starts[label + 1]
+        planar = True
+        for axis in range(4):
+            planar &= math.isfinite(planes[label, axis])
+        for k in range(first, last):
+            for axis in range(3):
+                normals[k, axis] = np.float32(planes[label, axis]) if planar else np.nan
+        if with_sigma and last > first:
+            factor = _denoising_factor(residuals[label], math.sqrt(squares[label] / (last - first)))
+            for k in range(first, last):
+                ul1[k] = np.float32(along[k] * factor)
     return starts, vertices, pixels, normals, ul1
 
 

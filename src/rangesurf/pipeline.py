@@ -217,8 +217,10 @@ class Pipeline:
 
         projection = frame.sensor.projection if isinstance(frame.sensor.projection, PinholeProjection) else None
         step = self._decimation(frame)
-        # Copied out once (normals, segmentation and the tracker's keyframe would each copy the strided view).
-        icp_points, icp_sigma = check_point_grid(points[::step, ::step]), sigma[::step, ::step]
+        icp_points, icp_sigma = points, sigma
+        if step > 1:
+            # Copied out once (normals, segmentation and the tracker's keyframe would each copy the strided view).
+            icp_points, icp_sigma = check_point_grid(points[::step, ::step]), sigma[::step, ::step]
         icp_projection = projection
         if projection is not None and step > 1:
             icp_projection = PinholeProjection(projection.fx / step, projection.fy / step, projection.cx / step,
