@@ -25,7 +25,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
-__all__ = ["TILE", "CellIndex", "find", "block_of"]
+__all__ = ["TILE", "TILE_SHIFT", "CellIndex", "find", "block_of"]
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")
 

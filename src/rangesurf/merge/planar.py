@@ -42,7 +42,7 @@ import numpy as np
 from numpy.typing import ArrayLike
 
 from rangesurf._growing import GrowingArray
-from rangesurf._tilegrid import TILE, CellIndex, block_of, find
+from rangesurf._tilegrid import TILE, TILE_SHIFT, CellIndex, block_of, find
 from rangesurf.mesh import Surface, _grid_faces
 
 __all__ = ["PlanarPatch", "Observations", "CELL_FIELDS", "runs_of"]
@@ -713,31 +713,42 @@ def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, c
     updated = 0
     added = 0
     rejected = 0
-    # Neighbouring pixels' vertices often share a cell (simulated arena: a third of the points on the SR-3000, an
-    # eighth on the Kinect): the previous point's cell is tried before the index.
-    last_column, last_row, slot = np.int32(0), np.int32(0), -1
+    # The points of a frame's surface come in scan order, so nearly always from the tile of the point before:
+    # its block is kept, and the directory consulted only when the tile changes (a branch that is almost never
+    # taken, where trying the previous point's cell first was one taken a third of the time, at random).
+    last_tile_column, last_tile_row, block = np.int32(0), np.int32(0), -1
     # The moments are summed in registers (in the same order, so to the same bits) and stored at the end.
     m0, m1, m2, m3, m4, m5, m6, m7, m8 = (moments[0], moments[1], moments[2], moments[3], moments[4], moments[5],
                                           moments[6], moments[7], moments[8])
+    # The loop's constants as scalars: the compiler cannot keep array elements in registers across the stores
+    # into the cells (for all it knows, those could change them).
+    p0, p1, p2, p3 = plane[0], plane[1], plane[2], plane[3]
+    o0, o1, o2 = origin[0], origin[1], origin[2]
+    a00, a01, a02 = axes[0, 0], axes[0, 1], axes[0, 2]
+    a10, a11, a12 = axes[1, 0], axes[1, 1], axes[1, 2]
+    a20, a21, a22 = axes[2, 0], axes[2, 1], axes[2, 2]
     stop, stop_column, stop_row = points.shape[0], np.int32(0), np.int32(0)
     for k in range(start, points.shape[0]):
-        if abs(points[k, 0] * plane[0] + points[k, 1] * plane[1] + points[k, 2] * plane[2] + plane[3]) > reach:
+        if abs(points[k, 0] * p0 + points[k, 1] * p1 + points[k, 2] * p2 + p3) > reach:
             rejected += 1
             continue
-        dx, dy, dz = points[k, 0] - origin[0], points[k, 1] - origin[1], points[k, 2] - origin[2]
-        u = dx * axes[0, 0] + dy * axes[0, 1] + dz * axes[0, 2]
-        v = dx * axes[1, 0] + dy * axes[1, 1] + dz * axes[1, 2]
-        h = dx * axes[2, 0] + dy * axes[2, 1] + dz * axes[2, 2]
+        dx, dy, dz = points[k, 0] - o0, points[k, 1] - o1, points[k, 2] - o2
+        u = dx * a00 + dy * a01 + dz * a02
+        v = dx * a10 + dy * a11 + dz * a12
+        h = dx * a20 + dy * a21 + dz * a22
         column, row = np.int32(np.floor(u / cell_size)), np.int32(np.floor(v / cell_size))
-        if slot < 0 or column != last_column or row != last_row:
-            slot, count, is_updated, is_added = _cell_slot(column, row, coords, count, directory, blocks, tiles, stamps,
-                                                           stamp, misses)
-            if slot < 0:
-                stop, stop_column, stop_row = k, column, row
-                break
-            updated += is_updated
-            added += is_added
-            last_column, last_row = column, row
+        tile_column, tile_row = column >> TILE_SHIFT, row >> TILE_SHIFT
+        if block < 0 or tile_column != last_tile_column or tile_row != last_tile_row:
+            block = block_of(directory, blocks, tiles, column, row)
+            last_tile_column, last_tile_row = tile_column, tile_row
+        slot, is_updated, is_added = -1, 0, 0
+        if block >= 0:
+            slot, count, is_updated, is_added = _slot_in(block, column, row, coords, count, blocks, stamps, stamp, misses)
+        if slot < 0:
+            stop, stop_column, stop_row = k, column, row
+            break
+        updated += is_updated
+        added += is_added
         weight = 1.0 / max(noise[k] + fit[k] + registration[k], 1e-12)
         wu, wv, wh = weight * u, weight * v, weight * h
         cells[slot, 0] += weight
@@ -766,17 +777,24 @@ def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, c
 
 @numba.njit(**_JIT, inline="always")
 def _cell_slot(column, row, coords, count, directory, blocks, tiles, stamps, stamp, misses):  # pragma: no cover - compiled
-    """The storage slot of cell (column, row), opened if new, and marked seen (``misses`` 0).
-
-    Returns (slot, cell count, updated, added): -1 as the slot when a new
-    cell finds no room (the storage full, or the index not reaching it:
-    `PlanarPatch._make_room`); ``updated`` and ``added`` are 1 when this call
-    first touches an existing cell in this round (``stamp``) or opens one,
-    else 0.
-    """
+    """The storage slot of cell (column, row), opened if new, and marked seen (`_slot_in`); -1 as the slot
+    also when the index does not reach the cell."""
     block = block_of(directory, blocks, tiles, column, row)
     if block < 0:
         return -1, count, 0, 0
+    return _slot_in(block, column, row, coords, count, blocks, stamps, stamp, misses)
+
+
+@numba.njit(**_JIT, inline="always")
+def _slot_in(block, column, row, coords, count, blocks, stamps, stamp, misses):  # pragma: no cover - compiled
+    """The storage slot of cell (column, row), whose tile's block is ``block``, opened if new, and marked seen
+    (``misses`` 0).
+
+    Returns (slot, cell count, updated, added): -1 as the slot when a new
+    cell finds no room (`PlanarPatch._make_room`); ``updated`` and ``added``
+    are 1 when this call first touches an existing cell in this round
+    (``stamp``) or opens one, else 0.
+    """
     slot = blocks[block, row & (TILE - 1), column & (TILE - 1)]
     if slot < 0:
         if count >= coords.shape[0]:
