@@ -5,7 +5,7 @@ import pytest
 
 from rangesurf import simulate
 from rangesurf.frame import get_sensor
-from rangesurf.mesh import Surface, boundary_loops, triangulate_in_plane, triangulate_segments
+from rangesurf.mesh import Surface, boundary_loops, segment_vertices, triangulate_in_plane, triangulate_segments
 from rangesurf.segment import Segmentation, segment_frame
 from rangesurf.segment.evaluate import truth_segmentation
 
@@ -40,6 +40,30 @@ def test_full_grid_gives_two_triangles_per_cell_facing_the_sensor():
     assert surface.area() == pytest.approx(np.ptp(x) * np.ptp(y), rel=1e-4)
     assert np.allclose(surface.normals, [0, 0, -1])
     assert np.allclose(surface.uncertainty["UL2"], 0.002)
+
+
+@pytest.mark.parametrize("stride", [1, 2, 3])
+def test_checkerboard_vertices_are_every_other_strided_pixel(stride):
+    labels = np.zeros(SR3000.shape, np.int32)
+    labels[10:70, 20:90], labels[80:140, 30:170] = 1, 2
+    points = wall()
+    points[85, 40] = np.nan  # an invalid pixel on the board gives no vertex
+    sigma = np.full(SR3000.shape, 0.01)
+    square = segment_vertices(points, one_segment(labels), range_sigma=sigma, stride=stride)
+    board = segment_vertices(points, one_segment(labels), range_sigma=sigma, stride=stride, checkerboard=True)
+    assert [surface.segment for surface in board] == [1, 2]
+    for full, half in zip(square, board):
+        rows, cols = full.pixels.T // stride
+        black = (rows + cols) % 2 == 0
+        # Exactly the square grid's vertices on the black squares, with their points and uncertainties (UL1
+        # scaled to the fit residual by the RMS noise of the vertices taken, a hair different on half of them).
+        assert np.array_equal(half.pixels, full.pixels[black])
+        assert np.array_equal(half.vertices, full.vertices[black])
+        assert np.allclose(half.uncertainty["UL1"], full.uncertainty["UL1"][black], rtol=1e-3)
+        assert abs(half.n_vertices - full.n_vertices / 2) <= 1
+    assert not any((surface.pixels == [85, 40]).all(axis=1).any() for surface in board)
+    with pytest.raises(ValueError, match="checkerboard"):
+        segment_vertices(points, one_segment(labels), checkerboard="yes")
 
 
 def test_no_triangle_spans_a_depth_step():

@@ -98,7 +98,9 @@ class MergeSettings:
 
     ``cell_size`` None: twice the first frame's median pixel footprint, at
     least 1 cm. ``stride``: merge every n-th row and column of a frame (None: as
-    many pixels as fall into a cell are skipped, about one per cell).
+    many pixels as fall into a cell are skipped, about one per cell; between
+    strides 1 and 2, every other pixel of a checkerboard where that is
+    nearer, `rangesurf.pipeline._stride_and_checkerboard`).
     ``volume``: the volumetric (TSDF) path, `rangesurf.merge.TSDFVolume`:
     "off", "unsegmented" (the pixels in no planar segment: objects that are
     not planes) or "all" (every pixel: a scanned object like the bunny);

@@ -184,12 +184,15 @@ class Pipeline:
         # pixel, register 9.6 -> 5.2 ms).
         return growing_decimation(*frame.range.shape) if frame.range.size >= _DENSE_FRAME else 1
 
-    def _stride(self, frame: RangeFrame, distance: np.ndarray) -> int:
+    def _vertex_sampling(self, frame: RangeFrame, distance: np.ndarray) -> tuple[int, bool]:
+        """The stride and checkerboard of `segment_vertices`: vertices about a cell apart."""
         if self.config.merge.stride is not None:
-            return self.config.merge.stride
+            return self.config.merge.stride, False
         # Every frame: a sparser sample than the cell size's (2.5 -> 0.4 ms at 640x480).
         footprint = _median_footprint(frame, distance, rows=8, columns=4)
-        return max(1, round(self.model.cell_size / footprint)) if footprint > 0 else 1
+        if not footprint > 0:
+            return 1, False
+        return _stride_and_checkerboard(self.model.cell_size / footprint)
 
     # ------------------------------------------------------------------
     # One frame.
@@ -259,8 +262,9 @@ class Pipeline:
             # Two pixel footprints: the model's vertices need not be denser than the sensor's noise
             # lets them be told apart, and merging costs scale with the vertices fused.
             self.model.cell_size = max(2.0 * _median_footprint(frame, smooth), 0.01)
-        vertex_sets = segment_vertices(vertex_points, vertex_segmentation, range_sigma=sigma,
-                                       stride=self._stride(frame, smooth))
+        stride, checkerboard = self._vertex_sampling(frame, smooth)
+        vertex_sets = segment_vertices(vertex_points, vertex_segmentation, range_sigma=sigma, stride=stride,
+                                       checkerboard=checkerboard)
         frame_surfaces = []
         if self.config.mesh.frame_surfaces:
             frame_surfaces = triangulate_segments(vertex_points, vertex_segmentation, max_edge_pixels=self.config.mesh.max_edge_pixels,
@@ -423,6 +427,30 @@ class Pipeline:
         pipeline.frames, pipeline.late, pipeline.deferred_runs, pipeline.postponed = (int(v) for v in arrays["pipeline/counters"])
         pipeline.checkpoint_extra = {name[len("extra/"):]: value for name, value in arrays.items() if name.startswith("extra/")}
         return pipeline
+
+
+def _stride_and_checkerboard(cells_per_pixel: float) -> tuple[int, bool]:
+    """The stride and checkerboard (`rangesurf.mesh.segment_vertices`) that merge vertices about a cell apart.
+
+    ``cells_per_pixel`` is the cell size over the pixel footprint. Strides
+    are rounded, except between 1 and 2, a fourfold step in vertices: there
+    the checkerboard of the full grid, vertices ``sqrt(2)`` pixels apart,
+    is taken where it is the nearest of the three by ratio (from 2^(1/4) to
+    2^(3/4) cells per pixel). Simulated SR-3000 arena, 100 frames, seeds 5-8,
+    where later frames see far walls (about 1.4 cells per pixel): half the
+    vertices merged there; the model's distance to the true planes at the
+    95th percentile 8.4 / 10.2 / 8.4 / 7.8 mm against 8.6 / 10.3 / 8.5 / 8.0
+    with stride 1, the median within 0.05 mm; ATE 2.44 / 2.92 / 2.55 / 2.05
+    mm against 2.28 / 2.99 / 2.61 / 1.98.
+
+    >>> [_stride_and_checkerboard(ratio) for ratio in (1.0, 1.43, 1.9, 2.7)]
+    [(1, False), (1, True), (2, False), (3, False)]
+    """
+    if cells_per_pixel < 2.0 ** 0.25:
+        return 1, False
+    if cells_per_pixel < 2.0 ** 0.75:
+        return 1, True
+    return max(2, round(cells_per_pixel)), False
 
 
 def _median_footprint(frame: RangeFrame, distance: np.ndarray, *, rows: int = 4, columns: int = 1) -> float:
