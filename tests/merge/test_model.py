@@ -571,3 +571,15 @@ def test_patch_plane_fit_matches_weighted_least_squares_and_keeps_collinear_cell
     # One row of cells: the tilt across it is unknown, so the patch stays level at the weighted mean height.
     row = patch_of(u[::6], np.full(8, 0.05), h[::6], weight[::6])
     np.testing.assert_allclose(row.fitted_plane(), [0.0, 0.0, np.average(h[::6], weights=weight[::6])], atol=1e-12)
+
+
+def test_median_of_nine_network_matches_numpy_on_ties_and_every_order():
+    from itertools import permutations
+
+    from rangesurf.merge.planar import _median_of_nine
+
+    rng = np.random.default_rng(4)
+    for values in [*rng.normal(size=(2000, 9)), *rng.integers(0, 3, size=(500, 9)).astype(float)]:
+        assert _median_of_nine(*values) == np.median(values)
+    ordered = np.arange(9.0)
+    assert all(_median_of_nine(*order) == 4.0 for order in list(permutations(ordered))[::97])

@@ -906,7 +906,6 @@ def _check_seen_through(origin, axes, cells, count, misses, rotation, translatio
     snz = rotation[2, 0] * nx + rotation[2, 1] * ny + rotation[2, 2] * nz
     form = normal_variance_form(nx, ny, nz, covariance)
     reached = 0
-    window = np.empty(9)
     for slot in range(count):
         weight = cells[slot, 0]
         u, v, h = cells[slot, 1] / weight, cells[slot, 2] / weight, cells[slot, 3] / weight
@@ -922,41 +921,57 @@ def _check_seen_through(origin, axes, cells, count, misses, rotation, translatio
         row = int(np.floor(fy * y / z + cy + 0.5))
         if column < 1 or row < 1 or column >= width - 1 or row >= height - 1:
             continue
-        # The 3 x 3 pixels around the projection, sorted (insertion sort of nine).
-        read = True
-        count_read = 0
-        for dr in range(-1, 2):
-            for dc in range(-1, 2):
-                measured = ranges[row + dr, column + dc]
-                if measured != measured:
-                    read = False  # no reading: no evidence
-                    break
-                position = count_read
-                while position > 0 and window[position - 1] > measured:
-                    window[position] = window[position - 1]
-                    position -= 1
-                window[position] = measured
-                count_read += 1
-            if not read:
-                break
-        if not read:
+        # The 3 x 3 pixels around the projection: their median and nearest, unless one has no reading (no
+        # evidence). A sorting network, without branches: an insertion sort's were taken at random.
+        r0, r1, r2 = ranges[row - 1, column - 1], ranges[row - 1, column], ranges[row - 1, column + 1]
+        r3, r4, r5 = ranges[row, column - 1], ranges[row, column], ranges[row, column + 1]
+        r6, r7, r8 = ranges[row + 1, column - 1], ranges[row + 1, column], ranges[row + 1, column + 1]
+        if not ((r0 == r0) & (r1 == r1) & (r2 == r2) & (r3 == r3) & (r4 == r4) & (r5 == r5) & (r6 == r6) & (r7 == r7)
+                & (r8 == r8)):
             continue
+        median = _median_of_nine(r0, r1, r2, r3, r4, r5, r6, r7, r8)
+        nearest = min(min(min(r0, r1), min(r2, r3)), min(min(r4, r5), min(r6, min(r7, r8))))
         expected = np.sqrt(x * x + y * y + z * z)
         cosine = abs(snx * x + sny * y + snz * z) / expected
         # The statistical test on the median; the nearest pixel must be behind the cell too: a cell at a
         # silhouette, beside which the sensor sees the background, has its own surface among the nine.
-        gap = (window[4] - expected) * cosine
+        gap = (median - expected) * cosine
         # The noise of the cell's fused mean, the pose's share, the range noise.
         variance = (1.0 / cells[slot, 8] + variance_along(wx, wy, wz, form)
                     + (range_sigma[row, column] * cosine) ** 2)
         tolerance = sigmas * np.sqrt(variance)
-        if gap > tolerance and window[0] - expected > floor:
+        if gap > tolerance and nearest - expected > floor:
             misses[slot] += 1
             if misses[slot] == limit:
                 reached += 1
         elif abs(gap) <= tolerance:
             misses[slot] = 0  # the surface is where the cell is
     return reached
+
+
+@numba.njit(**_JIT, inline="always")
+def _median_of_nine(p0, p1, p2, p3, p4, p5, p6, p7, p8):  # pragma: no cover - compiled
+    """The median of nine values (no NaN) by a network of 19 compare-exchanges (Paeth's; Devillard,
+    "Fast median search", 1998), each a minimum and a maximum."""
+    p1, p2 = min(p1, p2), max(p1, p2)
+    p4, p5 = min(p4, p5), max(p4, p5)
+    p7, p8 = min(p7, p8), max(p7, p8)
+    p0, p1 = min(p0, p1), max(p0, p1)
+    p3, p4 = min(p3, p4), max(p3, p4)
+    p6, p7 = min(p6, p7), max(p6, p7)
+    p1, p2 = min(p1, p2), max(p1, p2)
+    p4, p5 = min(p4, p5), max(p4, p5)
+    p7, p8 = min(p7, p8), max(p7, p8)
+    p3 = max(p0, p3)
+    p5 = min(p5, p8)
+    p4, p7 = min(p4, p7), max(p4, p7)
+    p6 = max(p3, p6)
+    p4 = max(p1, p4)
+    p2 = min(p2, p5)
+    p4 = min(p4, p7)
+    p4, p2 = min(p4, p2), max(p4, p2)
+    p4 = max(p6, p4)
+    return min(p4, p2)
 
 
 @numba.njit(**_JIT)
