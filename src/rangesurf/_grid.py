@@ -91,3 +91,25 @@ def pixel_pitch(points: np.ndarray) -> float:
     a /= np.linalg.norm(a, axis=1, keepdims=True)
     b /= np.linalg.norm(b, axis=1, keepdims=True)
     return float(np.median(np.linalg.norm(a - b, axis=1))) or 1e-3
+
+
+@numba.njit(**_JIT)
+def median_footprint(angles, range_image, rows, columns):  # pragma: no cover - compiled
+    """Median of ``angles * range_image[::rows, 1::columns]`` over its finite values > 0 (0.0 without any).
+
+    ``angles`` (float32, shaped like the sample) are those between neighbouring rays; the products are
+    float32 and their median as `np.median` of them gives it. One compiled pass: as NumPy (a product, a
+    mask, a compaction, a median) it cost 0.15 ms of every SR-3000 frame in the pipeline.
+    """
+    sample = range_image[::rows, 1::columns]
+    values = np.empty(sample.shape[0] * sample.shape[1], np.float32)
+    count = 0
+    for i in range(sample.shape[0]):
+        for j in range(sample.shape[1]):
+            value = np.float32(angles[i, j] * sample[i, j])
+            if value > 0 and value < np.inf:
+                values[count] = value
+                count += 1
+    if count == 0:
+        return 0.0
+    return float(np.median(values[:count]))

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from rangesurf._checks import check_point_grid
-from rangesurf._grid import points_along_rays
+from rangesurf._grid import median_footprint, points_along_rays
 from rangesurf.config import PipelineConfig
 from rangesurf.denoise import denoise_range
 from rangesurf.denoise.diffusion import remove_diffusion_bias
@@ -461,9 +461,7 @@ def _median_footprint(frame: RangeFrame, distance: np.ndarray, *, rows: int = 4,
 
     On every ``rows``-th row, the ray pairs starting at every ``columns``-th column.
     """
-    footprint = _ray_angles(frame.rays, rows, columns) * distance[::rows, 1::columns]
-    footprint = footprint[np.isfinite(footprint) & (footprint > 0)]
-    return float(np.median(footprint)) if footprint.size else 0.0
+    return median_footprint(_ray_angles(frame.rays, rows, columns), distance, rows, columns)
 
 
 def _ray_angles(rays: np.ndarray, rows: int, columns: int) -> np.ndarray:
