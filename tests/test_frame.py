@@ -213,3 +213,33 @@ def test_check_rigid_transform_accepts_rotations():
         bad = transform.copy()
         bad[3, 0] = 1
         check_rigid_transform(bad)
+
+
+@pytest.mark.parametrize(
+    "defect, message",
+    [("nan", "NaN or Inf"), ("inf", "NaN or Inf"), ("scale", "not a proper rotation"), ("shear", "not a proper rotation"),
+     ("mirror", "not a proper rotation"), ("row", "last row")],
+)
+def test_check_rigid_transform_names_each_defect(defect, message):
+    transform = _rotation_z(0.3)
+    transform[:3, 3] = [0.5, -1.0, 2.0]
+    bad = transform.copy()
+    if defect == "nan":
+        bad[1, 3] = np.nan
+    elif defect == "inf":
+        bad[0, 0] = np.inf
+    elif defect == "scale":
+        bad[:3, :3] *= 1.001  # R R^T off the identity by 2e-3
+    elif defect == "shear":
+        bad[0, 1] += 1e-3
+    elif defect == "mirror":
+        bad[:3, 2] *= -1.0  # orthonormal, determinant -1
+    else:
+        bad[3, 3] = 1.0 + 1e-6
+    with pytest.raises(ValueError, match=f"odometry.*{message}"):
+        check_rigid_transform(bad, "odometry")
+    # Within the tolerances: accepted as given.
+    nearly = transform.copy()
+    nearly[:3, :3] *= 1.0 + 1e-6
+    nearly[3, 3] = 1.0 + 1e-10
+    np.testing.assert_array_equal(check_rigid_transform(nearly), nearly)

@@ -423,8 +423,6 @@ def get_sensor(name: str | SensorModel) -> SensorModel:
 # --------------------------------------------------------------------------
 
 
-_LAST_ROW = np.array([0.0, 0.0, 0.0, 1.0])
-_IDENTITY3 = np.eye(3)
 
 
 def check_rigid_transform(transform: Any, what: str = "transform") -> np.ndarray:
@@ -439,15 +437,42 @@ def check_rigid_transform(transform: Any, what: str = "transform") -> np.ndarray
     matrix = np.asarray(transform, dtype=np.float64)
     if matrix.shape != (4, 4):
         raise ValueError(f"{what} must be a 4x4 matrix, got shape {matrix.shape}")
-    if not np.all(np.isfinite(matrix)):
+    # One compiled pass: every tracked, merged and carved frame comes here, and the NumPy checks (isfinite,
+    # two max-abs, a product and a determinant) took 17 us hot, three times that in the pipeline.
+    defect = _rigid_defect(matrix, _ROTATION_TOLERANCE)
+    if defect == _NOT_FINITE:
         raise ValueError(f"{what} contains NaN or Inf")
-    # Plain comparisons, not np.allclose (four times slower: every tracked and merged frame comes here).
-    if np.abs(matrix[3] - _LAST_ROW).max() > 1e-9:
+    if defect == _NOT_AFFINE:
         raise ValueError(f"{what} last row must be [0, 0, 0, 1], got {matrix[3].tolist()}")
-    rotation = matrix[:3, :3]
-    if np.abs(rotation @ rotation.T - _IDENTITY3).max() > _ROTATION_TOLERANCE or np.linalg.det(rotation) < 0:
+    if defect == _NOT_ROTATION:
         raise ValueError(f"{what} rotation part is not a proper rotation (orthonormal, det +1)")
     return matrix
+
+
+_NOT_FINITE, _NOT_AFFINE, _NOT_ROTATION = 1, 2, 3
+
+
+@numba.njit(cache=True, nogil=True)
+def _rigid_defect(matrix, tolerance):  # pragma: no cover - compiled
+    """What keeps a 4x4 ``matrix`` from being a rigid transform, checked in this order: 0 nothing,
+    `_NOT_FINITE` (NaN or Inf), `_NOT_AFFINE` (last row off [0, 0, 0, 1] by more than 1e-9) or
+    `_NOT_ROTATION` (R R^T off the identity by more than ``tolerance``, or det R < 0)."""
+    for i in range(4):
+        for j in range(4):
+            if not math.isfinite(matrix[i, j]):
+                return _NOT_FINITE
+    for j in range(4):
+        if abs(matrix[3, j] - (1.0 if j == 3 else 0.0)) > 1e-9:
+            return _NOT_AFFINE
+    for i in range(3):
+        for j in range(3):
+            product = matrix[i, 0] * matrix[j, 0] + matrix[i, 1] * matrix[j, 1] + matrix[i, 2] * matrix[j, 2]
+            if abs(product - (1.0 if i == j else 0.0)) > tolerance:
+                return _NOT_ROTATION
+    determinant = (matrix[0, 0] * (matrix[1, 1] * matrix[2, 2] - matrix[1, 2] * matrix[2, 1])
+                   - matrix[0, 1] * (matrix[1, 0] * matrix[2, 2] - matrix[1, 2] * matrix[2, 0])
+                   + matrix[0, 2] * (matrix[1, 0] * matrix[2, 1] - matrix[1, 1] * matrix[2, 0]))
+    return _NOT_ROTATION if determinant < 0.0 else 0
 
 
 @dataclass(frozen=True, eq=False)
