@@ -58,6 +58,10 @@ ICP_METHODS = ("point_to_plane", "point_to_point")
 _TUKEY = 4.685
 # 1 / Phi^-1(3/4): median absolute deviation to standard deviation.
 _MAD_TO_SIGMA = 1.4826
+# ICP's convergence: a step below these (radians, metres) ...
+_DEFAULT_TOLERANCE = (1e-4, 1e-4)
+# ... or, in the tracker, a translation below the last RMS residual over this.
+_TOLERANCE_DIVISOR = 30.0
 # Information-matrix eigenvalue ratio below which a direction counts as unconstrained.
 _DEGENERATE_RATIO = 1e-3
 # From this many source points on, the finest level takes every second one, ...
@@ -149,7 +153,7 @@ def icp(
     max_correspondence_distance: float = 0.1,
     max_iterations: int = 30,
     levels: tuple[int, ...] | None = None,
-    tolerance: tuple[float, float] = (1e-4, 1e-4),
+    tolerance: tuple[float, float] = _DEFAULT_TOLERANCE,
     min_inliers: int = 50,
     source_sigma: ArrayLike | None = None,
     target_sigma: ArrayLike | None = None,
@@ -611,6 +615,8 @@ class FrameTracker:
         # Whether the first registration onto the keyframe left a direction unconstrained.
         self._key_degenerate = False
         self._previous_odometry: np.ndarray | None = None
+        # The last registration's RMS residual (metres), which sets how small a step ends ICP (`_tolerance`).
+        self._last_rmse = math.nan
         self._motion = np.eye(4)
         # The last frame's motion from the keyframe is uncertain by this much (a left perturbation in the
         # keyframe's coordinates); zero when the last frame is the keyframe.
@@ -675,7 +681,8 @@ class FrameTracker:
             result = icp(points, key_points, key_normals, initial=prior, method=self.method,
                          target_projection=projection if key_points.ndim == 3 else None,
                          max_correspondence_distance=self.max_correspondence_distance,
-                         source_sigma=sigma, target_sigma=key_sigma)
+                         tolerance=self._tolerance(), source_sigma=sigma, target_sigma=key_sigma)
+            self._last_rmse = result.rmse
             fused = self._with_prior(result, prior, prior_covariance)
         except ValueError:
             pass  # no overlap with the keyframe
@@ -712,6 +719,21 @@ class FrameTracker:
             self._key_inliers, self._key_degenerate = None, False
             self._relative_covariance = np.zeros((6, 6))
         return TrackedPose(pose.copy(), covariance.copy(), result, prior_name, result is None, step_covariance)
+
+    def _tolerance(self) -> tuple[float, float]:
+        """`icp`'s tolerance: a translation step below a thirtieth of the last registration's RMS residual
+        (at least `icp`'s default) is finer than the residuals resolve.
+
+        Simulated arena frames registered in the pipeline, against their true
+        motion: SR-3000 (RMS residual about 5.6 mm, so 0.19 mm): 297 frames,
+        translation error mean 2.376 -> 2.380 mm, 95th percentile 6.47 ->
+        6.35 mm, 18 % fewer iterations. Kinect (1.9 mm): the default stands;
+        doubling it there raised the mean error from 0.227 to 0.250 mm.
+        """
+        rotation, translation = _DEFAULT_TOLERANCE
+        if math.isfinite(self._last_rmse):
+            translation = max(translation, self._last_rmse / _TOLERANCE_DIVISOR)
+        return rotation, translation
 
     def _set_keyframe(
         self, points: np.ndarray, normals: np.ndarray | None, pose: np.ndarray, covariance: np.ndarray,
@@ -777,7 +799,7 @@ class FrameTracker:
             "key_inliers": np.array(np.nan if self._key_inliers is None else self._key_inliers),
             "key_degenerate": np.array(self._key_degenerate),
             "motion": self._motion, "pose": self.pose, "covariance": self.covariance,
-            "relative_covariance": self._relative_covariance,
+            "relative_covariance": self._relative_covariance, "last_rmse": np.array(self._last_rmse),
         }
         if key_normals is not None:
             state["key_normals"] = key_normals
@@ -799,6 +821,7 @@ class FrameTracker:
         self._key_degenerate = bool(state.get("key_degenerate", False))
         self._motion, self.pose, self.covariance = state["motion"], state["pose"], state["covariance"]
         self._relative_covariance = state.get("relative_covariance", np.zeros((6, 6)))
+        self._last_rmse = float(state.get("last_rmse", math.nan))
         self._previous_odometry = state.get("previous_odometry")
 
     def _with_prior(
