@@ -64,10 +64,8 @@ _DEFAULT_TOLERANCE = (1e-4, 1e-4)
 _TOLERANCE_DIVISOR = 30.0
 # Information-matrix eigenvalue ratio below which a direction counts as unconstrained.
 _DEGENERATE_RATIO = 1e-3
-# From this many source points on, the finest level takes every second one, ...
+# From this many source points on, the finest level takes every second one ...
 _HALF_SOURCE = 20_000
-# ... from this many on every third (the finest level keeps 10,000 points or more), ...
-_THIRD_SOURCE = 30_000
 # ... and from this many on, the coarsest every eighth.
 _DENSE_SOURCE = 100_000
 # Floor of (n . u)^2, the squared cosine between a target normal and a line of sight, in the variance of a
@@ -184,16 +182,10 @@ def icp(
         Per level, at least 1.
     levels : tuple of int, optional
         Source subsampling steps, coarse to fine. Default (4, 2, 1) below
-        20,000 source points, (4, 2) from there, (4, 3) from 30,000 and (8,
-        4, 2) from 100,000 on: beyond some 10,000 points, every second point
-        constrains six parameters as well as all of them (same errors on
-        simulated SR-3000 and Kinect pairs, 40 % less time), and from
-        30,000 every third (78 Kinect frames registered in the pipeline,
-        34,000 points each, against their true motion: translation error
-        mean 0.219 -> 0.227 mm, 95th percentile 0.426 -> 0.433 mm, 40 % less
-        time). SR-3000 frames (about 25,000 points) keep (4, 2): every third
-        point there left the pipeline's model a little farther from the true
-        planes (12 simulated 100-frame runs: median 1.47 -> 1.51 mm).
+        20,000 source points, (4, 2) from there and (8, 4, 2) from 100,000
+        on: beyond some 10,000 points, every second point constrains six
+        parameters as well as all of them (same errors on simulated SR-3000
+        and Kinect pairs, 40 % less time).
     tolerance : (rotation, translation)
         Convergence: a step smaller than this (radians, metres).
     min_inliers : int
@@ -282,8 +274,6 @@ def icp(
     if levels is None:
         if len(source_points) >= _DENSE_SOURCE:
             levels = (8, 4, 2)
-        elif len(source_points) >= _THIRD_SOURCE:
-            levels = (4, 3)
         elif len(source_points) >= _HALF_SOURCE:
             levels = (4, 2)
         else:
