@@ -217,8 +217,8 @@ def test_check_rigid_transform_accepts_rotations():
 
 @pytest.mark.parametrize(
     "defect, message",
-    [("nan", "NaN or Inf"), ("inf", "NaN or Inf"), ("scale", "not a proper rotation"), ("shear", "not a proper rotation"),
-     ("mirror", "not a proper rotation"), ("row", "last row")],
+    [("nan", "NaN or Inf"), ("inf", "NaN or Inf"), ("scale", "not a proper rotation"),
+     ("shear", "not a proper rotation"), ("mirror", "not a proper rotation"), ("row", "last row")],
 )
 def test_check_rigid_transform_names_each_defect(defect, message):
     transform = _rotation_z(0.3)

@@ -685,10 +685,12 @@ def test_tracker_stops_icp_at_what_the_residuals_resolve(monkeypatch):
             tracked = tracker.track(points, normals, projection=frame.sensor.projection, odometry=frame.pose)
             if tracked.registration is not None:
                 iterations += tracked.registration.iterations
-                assert tracker._tolerance()[1] == pytest.approx(max(1e-4, tracked.registration.rmse / register._TOLERANCE_DIVISOR))
+                expected = max(1e-4, tracked.registration.rmse / register._TOLERANCE_DIVISOR)
+                assert tracker._tolerance()[1] == pytest.approx(expected)
             poses.append(tracked.T_world_sensor)
         # Each pose's error from the first frame on (the tracker's world is the first frame's odometry pose).
-        errors = [pose_error(np.linalg.inv(poses[0]) @ pose, np.linalg.inv(truths[0].T_world_sensor) @ truth.T_world_sensor)[1]
+        first = np.linalg.inv(truths[0].T_world_sensor)
+        errors = [pose_error(np.linalg.inv(poses[0]) @ pose, first @ truth.T_world_sensor)[1]
                   for pose, truth in zip(poses, truths)]
         return iterations, np.asarray(errors)
 
