@@ -423,8 +423,6 @@ def get_sensor(name: str | SensorModel) -> SensorModel:
 # --------------------------------------------------------------------------
 
 
-
-
 def check_rigid_transform(transform: Any, what: str = "transform") -> np.ndarray:
     """Return ``transform`` as a ``(4, 4)`` float64 rigid transform or raise.
 
