@@ -288,6 +288,71 @@ def test_compiled_gauss_newton_step_matches_lapack():
         assert np.allclose(_solve(information, gradient), -np.linalg.solve(damped, gradient), rtol=1e-6, atol=0.0)
 
 
+def test_compiled_pose_algebra_matches_numpy():
+    """The tracker's written-out small-matrix algebra against NumPy's: products, inverses of a pose (also one that
+    is a rotation only to rounding, and one that is not a rotation at all) and of a covariance, the adjoint's
+    carrying of a covariance into the world, and the eigen-decomposition behind ICP's covariance (also with an
+    unconstrained direction, which must come out infinite and be reported)."""
+    from rangesurf.register import _covariance, _product, _spd_inverse, _to_world, _transform_inverse
+
+    rng = np.random.default_rng(12)
+    pose = np.eye(4)
+    pose[:3, :3], pose[:3, 3] = Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), rng.normal(size=3)
+    skewed = pose.copy()
+    skewed[:3, :3] += 1e-7 * rng.normal(size=(3, 3))
+    affine = pose.copy()
+    affine[:3, :3] = rng.normal(size=(3, 3))
+    for transform in (pose, skewed, affine):
+        assert np.allclose(_transform_inverse(transform), np.linalg.inv(transform), rtol=0.0, atol=1e-12)
+        assert np.allclose(_product(transform, affine), transform @ affine, rtol=0.0, atol=1e-14)
+    root = rng.normal(size=(6, 6))
+    covariance = root @ root.T + 1e-3 * np.eye(6)
+    assert np.allclose(_spd_inverse(covariance), np.linalg.inv(covariance), rtol=1e-9, atol=0.0)
+    skew = np.array([[0, -pose[2, 3], pose[1, 3]], [pose[2, 3], 0, -pose[0, 3]], [-pose[1, 3], pose[0, 3], 0]])
+    adjoint = np.block([[pose[:3, :3], np.zeros((3, 3))], [skew @ pose[:3, :3], pose[:3, :3]]])
+    assert np.allclose(_to_world(pose, covariance), adjoint @ covariance @ adjoint.T, rtol=1e-12, atol=1e-12)
+
+    rmse = 0.004
+    values, vectors = np.linalg.eigh(covariance)
+    assert np.allclose(_covariance(covariance, rmse)[0], rmse**2 * vectors @ np.diag(1 / values) @ vectors.T, rtol=1e-9)
+    assert _covariance(covariance, rmse)[1].shape == (0, 6)
+    # Nothing seen along one direction: the covariance is unbounded wherever that direction reaches.
+    oblique = 1e4 * np.eye(6) - (1e4 - 1e-9) * np.outer(vectors[:, 2], vectors[:, 2])
+    for blind in (np.diag([1e4, 1e4, 1e4, 1e4, 1e4, 1e-9]), oblique):
+        result, unconstrained = _covariance(blind, rmse)
+        direction = np.linalg.eigh(blind)[1][:, 0]
+        assert np.isinf(result[np.ix_(direction != 0, direction != 0)]).all()
+        assert np.allclose(np.abs(unconstrained), np.abs(direction)[np.newaxis])
+
+
+def test_prior_fusion_matches_its_formula():
+    """`_fuse_with_prior` against the fusion written in NumPy: the MAP motion between ICP's and the prior's,
+    weighted by their information, its covariance and the squared Mahalanobis distance between the two; with a
+    direction ICP cannot see, ICP's information and motion along it are dropped."""
+    from rangesurf.register import _exp, _fuse_with_prior, _log
+
+    rng = np.random.default_rng(4)
+    registered, prior = _exp(0.03 * rng.normal(size=6)), _exp(0.03 * rng.normal(size=6))
+    root = rng.normal(size=(6, 6))
+    prior_covariance = 1e-4 * root @ root.T + 1e-6 * np.eye(6)
+    jacobian = rng.normal(size=(50, 6))
+    measured = 1e4 * jacobian.T @ jacobian
+    for unconstrained in (np.zeros((0, 6)), np.array([[0.0, 0, 0, 1, 0, 0]])):
+        difference = registered @ np.linalg.inv(prior)
+        delta = np.concatenate([_log(np.ascontiguousarray(difference[:3, :3])), difference[:3, 3]])
+        keep = np.eye(6) - unconstrained.T @ unconstrained
+        seen, delta = keep @ measured @ keep, keep @ delta
+        covariance = np.linalg.inv(seen + np.linalg.inv(prior_covariance))
+        innovation = delta @ (seen - seen @ covariance @ seen) @ delta
+        motion = _exp(covariance @ seen @ delta) @ prior
+        fused, fused_covariance, fused_innovation = _fuse_with_prior(registered, prior, prior_covariance, measured,
+                                                                     unconstrained)
+        assert np.allclose(fused, motion, rtol=0.0, atol=1e-12)
+        assert np.allclose(fused_covariance, covariance, rtol=1e-9, atol=0.0)
+        assert fused_innovation == pytest.approx(innovation, rel=1e-9)
+        assert innovation > 1.0  # the two motions differ: a test of the distance, not of zeros
+
+
 @pytest.mark.parametrize("angle", [0.0, 1e-9, 0.3, 2.0, np.pi - 1e-4, np.pi])
 def test_rotation_vector_round_trip(angle):
     from rangesurf.register import _exp, _log

@@ -434,16 +434,49 @@ def compose_covariance(T_world_target: ArrayLike, world_covariance: ArrayLike, r
     return covariances[0] + carried
 
 
-def _to_world(pose: np.ndarray, covariance: np.ndarray) -> np.ndarray:
-    """A finite covariance of a left perturbation in ``pose``'s frame carried into the world's by the adjoint."""
-    rotation, translation = pose[:3, :3], pose[:3, 3]
-    skew = np.array([[0.0, -translation[2], translation[1]], [translation[2], 0.0, -translation[0]],
-                     [-translation[1], translation[0], 0.0]])
+@numba.njit(**_JIT)
+def _to_world(pose, covariance):  # pragma: no cover - compiled
+    """A finite covariance of a left perturbation in ``pose``'s frame carried into the world's by the adjoint.
+
+    The adjoint of ``(R, t)`` is ``[[R, 0], [[t]x R, R]]``.
+    """
     adjoint = np.zeros((6, 6))
-    adjoint[:3, :3] = rotation
-    adjoint[3:, :3] = skew @ rotation
-    adjoint[3:, 3:] = rotation
-    return adjoint @ covariance @ adjoint.T
+    tx, ty, tz = pose[0, 3], pose[1, 3], pose[2, 3]
+    for j in range(3):
+        rx, ry, rz = pose[0, j], pose[1, j], pose[2, j]
+        for i in range(3):
+            adjoint[i, j] = adjoint[i + 3, j + 3] = pose[i, j]
+        adjoint[3, j] = ty * rz - tz * ry
+        adjoint[4, j] = tz * rx - tx * rz
+        adjoint[5, j] = tx * ry - ty * rx
+    return _product(_product(adjoint, covariance), adjoint.T)
+
+
+@numba.njit(**_JIT)
+def _fuse_with_prior(registered, prior, prior_covariance, measured, unconstrained):  # pragma: no cover - compiled
+    """`FrameTracker._with_prior`'s algebra: the fused motion, its covariance, and the squared Mahalanobis
+    distance between ICP's motion (``registered``, information ``measured``) and the prior's.
+
+    ``unconstrained`` (K, 6) are the directions ICP cannot see (none: K = 0).
+    """
+    # Left perturbation from the prior to ICP's estimate.
+    difference = _product(registered, _transform_inverse(prior))
+    delta = np.empty(6)
+    delta[:3] = _log(difference[:3, :3])
+    delta[3:] = difference[:3, 3]
+    if unconstrained.shape[0]:
+        # Whatever ICP did along the directions it cannot see is noise: drop them outright.
+        keep = np.eye(6) - _product(unconstrained.T, unconstrained)
+        measured = _product(_product(keep, measured), keep)
+        delta = _apply(keep, delta)
+    covariance = _spd_inverse(measured + _spd_inverse(prior_covariance))
+    # How far ICP's motion lies from the prior's, in their combined uncertainty (squared Mahalanobis
+    # distance; (P + M^-1)^-1 = M - M (M + P^-1)^-1 M also holds for a singular M).
+    spread = _apply(measured - _product(_product(measured, covariance), measured), delta)
+    innovation = 0.0
+    for k in range(6):
+        innovation += delta[k] * spread[k]
+    return _product(_exp(_apply(_product(covariance, measured), delta)), prior), covariance, innovation
 
 
 @dataclass(frozen=True)
@@ -653,15 +686,15 @@ class FrameTracker:
             self._previous_odometry = odometry_pose
             return TrackedPose(self.pose.copy(), self.covariance.copy(), None, "first")
         if odometry_pose is not None and self._previous_odometry is not None:
-            step, prior_name = np.linalg.inv(self._previous_odometry) @ odometry_pose, "odometry"
+            step, prior_name = _product(_transform_inverse(self._previous_odometry), odometry_pose), "odometry"
             prior_covariance = self.prior_covariance(step)
         else:
             # A constant-velocity guess knows less than odometry does.
             step, prior_name = self._motion, "constant_velocity"
             prior_covariance = _CONSTANT_VELOCITY_SCALE * self.prior_covariance(step)
         key_points, key_normals, key_pose, key_covariance, key_sigma = self._keyframe
-        last_motion = np.linalg.inv(key_pose) @ self.pose
-        prior = last_motion @ step
+        last_motion = _product(_transform_inverse(key_pose), self.pose)
+        prior = _product(last_motion, step)
         # The prior's motion from the keyframe is the last frame's, as uncertain as that was, and one step
         # more. Along directions the scene leaves unconstrained (a corridor's axis) it is all the motion
         # there is: one step's uncertainty per keyframe would let the drift there grow unseen.
@@ -678,22 +711,21 @@ class FrameTracker:
             pass  # no overlap with the keyframe
         if fused is not None:
             motion, relative_covariance = fused
-            pose = key_pose @ motion
-            step_covariance = _to_world(key_pose, relative_covariance)
-            covariance = key_covariance + step_covariance
+            pose = _product(key_pose, motion)
         else:
             # ICP failed, or the prior rules its result out: dead-reckon one step on the prior.
             result = None
-            pose = self.pose @ step
+            pose = _product(self.pose, step)
             relative_covariance = prior_covariance
-            step_covariance = _to_world(key_pose, relative_covariance)
-            covariance = key_covariance + step_covariance
-            motion = np.linalg.inv(key_pose) @ pose
-        self._motion = np.linalg.inv(self.pose) @ pose
+            motion = _product(_transform_inverse(key_pose), pose)
+        step_covariance = _to_world(key_pose, relative_covariance)
+        covariance = key_covariance + step_covariance
+        self._motion = _product(_transform_inverse(self.pose), pose)
         self.pose, self.covariance, self._relative_covariance = pose, covariance, relative_covariance
         self._previous_odometry = odometry_pose
-        moved = float(np.linalg.norm(motion[:3, 3]))
-        turned = math.degrees(math.acos(np.clip((np.trace(motion[:3, :3]) - 1) / 2, -1.0, 1.0)))
+        moved = math.sqrt(motion[0, 3] ** 2 + motion[1, 3] ** 2 + motion[2, 3] ** 2)
+        cosine = (motion[0, 0] + motion[1, 1] + motion[2, 2] - 1.0) / 2.0
+        turned = math.degrees(math.acos(min(max(cosine, -1.0), 1.0)))
         # The overlap with the keyframe shrinks as the sensor moves on; once the pairs found fall
         # well below what the first frame after the keyframe found, registration gets fragile.
         if self._key_inliers is None and result is not None:
@@ -740,8 +772,9 @@ class FrameTracker:
 
     def prior_covariance(self, step: np.ndarray) -> np.ndarray:
         """Covariance (6, 6: rotation vector, translation) of a prior's motion ``step`` (4, 4)."""
-        angle = float(np.linalg.norm(_log(step[:3, :3])))
-        length = float(np.linalg.norm(step[:3, 3]))
+        rotation_vector = _log(np.ascontiguousarray(step[:3, :3], dtype=np.float64))
+        angle = math.sqrt(rotation_vector[0] ** 2 + rotation_vector[1] ** 2 + rotation_vector[2] ** 2)
+        length = math.sqrt(step[0, 3] ** 2 + step[1, 3] ** 2 + step[2, 3] ** 2)
         rotation = self.odometry_sigma[0] + self.odometry_relative * angle
         translation = self.odometry_sigma[1] + self.odometry_relative * length
         return np.diag([rotation**2] * 3 + [translation**2] * 3)
@@ -829,26 +862,14 @@ class FrameTracker:
         direction that two planes barely constrain, or locked onto the
         wrong structure): the caller keeps the prior.
         """
-        # Left perturbation from the prior to ICP's estimate.
-        difference = result.T_target_source @ np.linalg.inv(prior)
-        delta = np.concatenate([_log(difference[:3, :3]), difference[:3, 3]])
         # Floored at (0.1 mm)^2: noise-free data would otherwise claim unbounded information.
         variance = max(result.rmse**2, _MIN_RESIDUAL_VARIANCE) if math.isfinite(result.rmse) else 1.0
         measured = result.information / (variance * self.icp_variance_scale)
-        if result.degenerate:
-            # Whatever ICP did along the directions it cannot see is noise: drop them outright.
-            keep = np.eye(6) - result.unconstrained.T @ result.unconstrained
-            measured = keep @ measured @ keep
-            delta = keep @ delta
-        prior_information = np.linalg.inv(prior_covariance)
-        information = measured + prior_information
-        covariance = np.linalg.inv(information)
-        # How far ICP's motion lies from the prior's, in their combined uncertainty (squared Mahalanobis
-        # distance; (P + M^-1)^-1 = M - M (M + P^-1)^-1 M also holds for a singular M).
-        innovation = float(delta @ (measured - measured @ covariance @ measured) @ delta)
+        motion, covariance, innovation = _fuse_with_prior(
+            result.T_target_source, prior, prior_covariance, measured, np.ascontiguousarray(result.unconstrained))
         if innovation > _INNOVATION_GATE:
             return None
-        return _exp(covariance @ measured @ delta) @ prior, covariance
+        return motion, covariance
 
 
 # --------------------------------------------------------------------------
@@ -1169,8 +1190,41 @@ def _require_pairs(count: int, distance: float, min_inliers: int) -> None:
 
 
 @numba.njit(**_JIT)
+def _cholesky(matrix, damping):  # pragma: no cover - compiled
+    """The lower Cholesky factor of ``matrix + damping I`` (symmetric positive definite), written out (LAPACK
+    costs seconds to compile)."""
+    size = matrix.shape[0]
+    lower = np.zeros((size, size))
+    for i in range(size):
+        for j in range(i + 1):
+            total = matrix[i, j] + (damping if i == j else 0.0)
+            for k in range(j):
+                total -= lower[i, k] * lower[j, k]
+            lower[i, j] = math.sqrt(total) if i == j else total / lower[j, j]
+    return lower
+
+
+@numba.njit(**_JIT)
+def _cholesky_solve(lower, right):  # pragma: no cover - compiled
+    """``x`` with ``L L^T x = right``, by forward and back substitution."""
+    size = lower.shape[0]
+    solution = np.empty(size)
+    for i in range(size):
+        total = right[i]
+        for k in range(i):
+            total -= lower[i, k] * solution[k]
+        solution[i] = total / lower[i, i]
+    for i in range(size - 1, -1, -1):
+        total = solution[i]
+        for k in range(i + 1, size):
+            total -= lower[k, i] * solution[k]
+        solution[i] = total / lower[i, i]
+    return solution
+
+
+@numba.njit(**_JIT)
 def _solve(information, gradient):  # pragma: no cover - compiled
-    """The Gauss-Newton step ``-(H + d I)^-1 g``, by Cholesky factors written out (LAPACK costs seconds to compile).
+    """The Gauss-Newton step ``-(H + d I)^-1 g``, by Cholesky factors.
 
     A tiny damping ``d`` keeps the unconstrained directions of degenerate
     scenes still, and ``H + d I`` positive definite.
@@ -1178,27 +1232,22 @@ def _solve(information, gradient):  # pragma: no cover - compiled
     trace = 0.0
     for i in range(6):
         trace += information[i, i]
-    damping = 1e-9 * max(trace, 1e-12)
-    lower = np.zeros((6, 6))
-    for i in range(6):
-        for j in range(i + 1):
-            total = information[i, j] + (damping if i == j else 0.0)
-            for k in range(j):
-                total -= lower[i, k] * lower[j, k]
-            lower[i, j] = math.sqrt(total) if i == j else total / lower[j, j]
-    # L y = -g, then L^T x = y.
-    step = np.empty(6)
-    for i in range(6):
-        total = -gradient[i]
-        for k in range(i):
-            total -= lower[i, k] * step[k]
-        step[i] = total / lower[i, i]
-    for i in range(5, -1, -1):
-        total = step[i]
-        for k in range(i + 1, 6):
-            total -= lower[k, i] * step[k]
-        step[i] = total / lower[i, i]
-    return step
+    return _cholesky_solve(_cholesky(information, 1e-9 * max(trace, 1e-12)), -gradient)
+
+
+@numba.njit(**_JIT)
+def _spd_inverse(matrix):  # pragma: no cover - compiled
+    """The inverse of a symmetric positive definite matrix (a covariance, an information matrix), by its Cholesky
+    factors."""
+    size = matrix.shape[0]
+    lower = _cholesky(matrix, 0.0)
+    inverse = np.empty((size, size))
+    unit = np.zeros(size)
+    for column in range(size):
+        unit[column] = 1.0
+        inverse[:, column] = _cholesky_solve(lower, unit)
+        unit[column] = 0.0
+    return inverse
 
 
 @numba.njit(**_JIT)
@@ -1258,14 +1307,48 @@ def _exp(delta):  # pragma: no cover - compiled
 
 
 @numba.njit(**_JIT)
-def _compose(left, right):  # pragma: no cover - compiled
-    """The 4x4 product ``left @ right`` (written out: a BLAS call costs seconds to compile)."""
-    product = np.zeros((4, 4))
-    for i in range(4):
-        for j in range(4):
-            for k in range(4):
+def _product(left, right):  # pragma: no cover - compiled
+    """The matrix product ``left @ right`` of small matrices (written out: a BLAS call costs seconds to compile,
+    and NumPy's costs microseconds of overhead on 4x4 and 6x6 matrices)."""
+    product = np.zeros((left.shape[0], right.shape[1]))
+    for i in range(left.shape[0]):
+        for j in range(right.shape[1]):
+            for k in range(left.shape[1]):
                 product[i, j] += left[i, k] * right[k, j]
     return product
+
+
+@numba.njit(**_JIT)
+def _apply(matrix, vector):  # pragma: no cover - compiled
+    """``matrix @ vector``, written out as `_product`."""
+    result = np.zeros(matrix.shape[0])
+    for i in range(matrix.shape[0]):
+        for k in range(matrix.shape[1]):
+            result[i] += matrix[i, k] * vector[k]
+    return result
+
+
+@numba.njit(**_JIT)
+def _transform_inverse(transform):  # pragma: no cover - compiled
+    """The inverse of a 4x4 transform ``[[A, t], [0, 1]]``: ``[[A^-1, -A^-1 t], [0, 1]]``, ``A^-1`` by its adjugate.
+
+    Not ``A^T``: a pose is a rotation only to rounding, and chaining ``A^T``
+    frame after frame (the constant-velocity prior) let that rounding grow
+    until the pose failed `check_rigid_transform`.
+    """
+    a, b, c = transform[0, 0], transform[0, 1], transform[0, 2]
+    d, e, f = transform[1, 0], transform[1, 1], transform[1, 2]
+    g, h, k = transform[2, 0], transform[2, 1], transform[2, 2]
+    cofactor_a, cofactor_b, cofactor_c = e * k - f * h, f * g - d * k, d * h - e * g
+    scale = 1.0 / (a * cofactor_a + b * cofactor_b + c * cofactor_c)
+    inverse = np.eye(4)
+    inverse[0, 0], inverse[0, 1], inverse[0, 2] = cofactor_a * scale, (c * h - b * k) * scale, (b * f - c * e) * scale
+    inverse[1, 0], inverse[1, 1], inverse[1, 2] = cofactor_b * scale, (a * k - c * g) * scale, (c * d - a * f) * scale
+    inverse[2, 0], inverse[2, 1], inverse[2, 2] = cofactor_c * scale, (b * g - a * h) * scale, (a * e - b * d) * scale
+    for i in range(3):
+        inverse[i, 3] = -(inverse[i, 0] * transform[0, 3] + inverse[i, 1] * transform[1, 3]
+                          + inverse[i, 2] * transform[2, 3])
+    return inverse
 
 
 @numba.njit(**_JIT)
@@ -1299,17 +1382,31 @@ def _log(rotation):  # pragma: no cover - compiled
     return np.array([factor * x, factor * y, factor * z])
 
 
-def _covariance(information: np.ndarray, rmse: float) -> tuple[np.ndarray, np.ndarray]:
-    """sigma^2 (J^T W J)^-1, and the directions the information matrix does not constrain."""
+@numba.njit(**_JIT)
+def _covariance(information, rmse):  # pragma: no cover - compiled
+    """sigma^2 (J^T W J)^-1, and the directions the information matrix does not constrain (inf along them)."""
     values, vectors = np.linalg.eigh(information)
+    size = values.shape[0]
     top = max(values[-1], 1e-300)
     weak = values < _DEGENERATE_RATIO * top
-    inverse_values = np.where(weak, np.inf, 1.0 / np.where(weak, 1.0, values))
-    with np.errstate(invalid="ignore"):
-        covariance = (vectors * inverse_values) @ vectors.T * (rmse**2 if math.isfinite(rmse) else np.nan)
-    if weak.any():
-        covariance = np.where(np.isnan(covariance), np.inf, covariance)
-    return covariance, vectors[:, weak].T
+    n_weak = np.count_nonzero(weak)
+    variance = rmse * rmse if math.isfinite(rmse) else np.nan
+    covariance = np.empty((size, size))
+    for i in range(size):
+        for j in range(size):
+            total = 0.0
+            for k in range(size):
+                total += vectors[i, k] * (math.inf if weak[k] else 1.0 / values[k]) * vectors[j, k]
+            value = total * variance
+            # With a weak direction, inf - inf (and 0 inf) is unknown too.
+            covariance[i, j] = math.inf if n_weak and value != value else value
+    unconstrained = np.empty((n_weak, size))
+    row = 0
+    for k in range(size):
+        if weak[k]:
+            unconstrained[row] = vectors[:, k]
+            row += 1
+    return covariance, unconstrained
 
 
 
@@ -1508,7 +1605,7 @@ def _projective_level(
             break
         scale = _robust_scale(residuals[:count], scale_distance)
         delta = _solve(information, gradient)
-        transform = _compose(_exp(delta), transform)
+        transform = _product(_exp(delta), transform)
         converged = _converged(delta, rotation_tolerance, translation_tolerance)
         iteration += 1
     return transform, scale, iteration, converged, count
