@@ -231,11 +231,11 @@ class Pipeline:
         shared_normals = None
         if self.config.segment.segmenter == "region":
             grown_on = growing_decimation(*points.shape[:2])
+            segmentation, grown_normals = segment_planes(points, range_sigma=sigma, projection=projection,
+                                                         decimate=grown_on, return_normals=True)
             if step == grown_on:
-                # Segmentation grows on the grid registration uses: one normal estimate for both.
-                shared_normals = estimate_normals(icp_points, projection=icp_projection, range_sigma=icp_sigma)
-            segmentation = segment_planes(points, range_sigma=sigma, projection=projection, decimate=grown_on,
-                                          normals=shared_normals)
+                # Segmentation grew on the grid registration uses: one normal estimate for both.
+                shared_normals = grown_normals
         else:
             segmentation = segment_nxd(points, estimate_normals(points, projection=projection, range_sigma=sigma))
         lap("segment")

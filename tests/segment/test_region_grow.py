@@ -470,6 +470,30 @@ def test_segment_planes_takes_the_callers_normals():
         segment_planes(points, range_sigma=sigma, normals=normals[1:])
 
 
+@pytest.mark.parametrize("decimate", [1, 2])
+def test_segment_planes_returns_the_normals_it_grew_with(decimate):
+    """``return_normals``: the normals of the grid grown on are `estimate_normals`' of that grid (what the
+    pipeline registers with), and the segmentation is the one without them."""
+    from rangesurf.frame import PinholeProjection
+    from rangesurf.normals import estimate_normals
+    from rangesurf.segment import segment_planes
+
+    frames, _ = simulate.simulate_sequence("arena", "sr3000", 1, seed=4)
+    frame = frames[0]
+    points = frame.points.astype(np.float32)
+    sigma = frame.sensor.range_sigma(np.where(np.isfinite(frame.range), frame.range, 1.0), frame.intensity)
+    projection = frame.sensor.projection
+    segmentation, normals = segment_planes(points, range_sigma=sigma, projection=projection, decimate=decimate,
+                                           return_normals=True)
+    coarse = PinholeProjection(projection.fx / decimate, projection.fy / decimate, projection.cx / decimate,
+                               projection.cy / decimate)
+    expected = estimate_normals(np.ascontiguousarray(points[::decimate, ::decimate]), projection=coarse,
+                                range_sigma=np.ascontiguousarray(sigma[::decimate, ::decimate]))
+    assert np.array_equal(normals, expected, equal_nan=True) and np.isfinite(normals).mean() > 0.9
+    alone = segment_planes(points, range_sigma=sigma, projection=projection, decimate=decimate)
+    assert alone.n_segments >= 4 and np.array_equal(segmentation.labels, alone.labels)
+
+
 def test_plane_rms_matches_point_distances():
     points, labels = noisy_scene(17)
     moments = moments_reference(points, labels, 4)[1:]

@@ -40,7 +40,8 @@ def segment_planes(
     projection: PinholeProjection | None = None,
     decimate: int | None = None,
     normals: ArrayLike | None = None,
-) -> Segmentation:
+    return_normals: bool = False,
+) -> Segmentation | tuple[Segmentation, np.ndarray]:
     """Normals and region growing in one call, decimating large frames for speed.
 
     Parameters
@@ -61,12 +62,17 @@ def segment_planes(
     normals : array, optional
         `estimate_normals` of the points grown on (``points[::decimate,
         ::decimate]``, with the projection and sigma decimated alike), when
-        the caller has them already (the pipeline registers with the same
-        normals).
+        the caller has them already.
+    return_normals : bool
+        Also return the normals grown with (those given, or those
+        estimated here): registration can use them (the pipeline does).
 
     Returns
     -------
-    Segmentation
+    segmentation : Segmentation
+    normals : (H', W', 3) float32
+        With ``return_normals``: the normals of ``points[::decimate,
+        ::decimate]``.
 
     Examples
     --------
@@ -97,7 +103,8 @@ def segment_planes(
             normals, _, distance, valid = _normals_and_ranges(points, projection, range_sigma=sigma)
         else:
             distance, valid, _ = point_ranges(points)
-        return _grow(points, normals, sigma, distance, valid)
+        segmentation = _grow(points, normals, sigma, distance, valid)
+        return (segmentation, normals) if return_normals else segmentation
     distance, valid, n_infinite = point_ranges(points)
     if n_infinite:
         check_point_grid(points)  # raises, in the shared wording
@@ -117,7 +124,8 @@ def segment_planes(
         normals = estimate_normals(coarse_points, projection=coarse_projection, range_sigma=coarse_sigma)
     coarse = _grow(coarse_points, normals, coarse_sigma, np.ascontiguousarray(distance[::decimate, ::decimate]),
                    np.ascontiguousarray(valid[::decimate, ::decimate]))
-    return _refine_upsampled(points, distance, valid, sigma, coarse, decimate)
+    segmentation = _refine_upsampled(points, distance, valid, sigma, coarse, decimate)
+    return (segmentation, normals) if return_normals else segmentation
 
 
 @dataclass(frozen=True)
