@@ -149,15 +149,20 @@ def _points(frame) -> np.ndarray:
     return (frame.rays * frame.range[..., None]).astype(np.float32)
 
 
-def contention_text(times: dict[str, list[float]], task_sums: dict[int, list[float]]) -> str:
+def contention_text(times: dict[str, list[float]], task_sums: dict[int, list[float]],
+                    cpu_sums: dict[int, list[float]]) -> str:
     """Where the warm 2-worker batch's time goes: the tasks themselves (slower side by side) or waiting."""
     best = min(range(len(times["warm 2"])), key=lambda k: times["warm 2"][k])
-    alone, side_by_side = min(task_sums[1]), task_sums[2][best]
-    return (f"The warm batches' tasks took {alone:.2f} s summed on 1 worker and {side_by_side:.2f} s on 2 "
-            f"({100 * (side_by_side / alone - 1):+.0f} %: two recordings at once slow each other down, on two "
-            f"cores that share caches and memory); the 2-worker batch's wall time is "
-            f"{100 * (times['warm 2'][best] / (side_by_side / 2) - 1):+.0f} % over half its tasks' sum "
-            "(scheduling, and the last task running alone).")
+    alone = min(range(len(task_sums[1])), key=lambda k: task_sums[1][k])
+    wall_1, wall_2 = task_sums[1][alone], task_sums[2][best]
+    cpu_1, cpu_2 = cpu_sums[1][alone], cpu_sums[2][best]
+    return (f"The warm batches' tasks took {wall_1:.2f} s summed on 1 worker and {wall_2:.2f} s on 2 "
+            f"({100 * (wall_2 / wall_1 - 1):+.0f} %); their threads' CPU time {cpu_1:.2f} s and {cpu_2:.2f} s "
+            f"({100 * (cpu_2 / cpu_1 - 1):+.0f} %: what two recordings at once cost each other through shared "
+            "caches and memory). The rest is waiting for a core: the scheduler and the workers' own Dask threads "
+            "run on the same two cores, which with one worker have a core to themselves. The 2-worker batch's "
+            f"wall time is {100 * (times['warm 2'][best] / (wall_2 / 2) - 1):+.0f} % over half its tasks' sum "
+            "(the two workers' shares of the recordings differ, and the last task runs alone).")
 
 
 def main() -> None:
@@ -171,8 +176,9 @@ def main() -> None:
         reference = root / "sequential"
         sequential(reference, 2)  # compiles or loads the Numba kernels, filling the on-disk cache for the workers
         times: dict[str, list[float]] = {key: [] for key in ("sequential", "local 1", "local 2", "warm 1", "warm 2")}
-        # Per round, the warm batches' task times summed (each task's wall time on its worker).
+        # Per round, the warm batches' task times summed (each task's wall and thread CPU time on its worker).
         task_sums: dict[int, list[float]] = {1: [], 2: []}
+        cpu_sums: dict[int, list[float]] = {1: [], 2: []}
         same = True
         warm = {workers: warm_cluster(workers) for workers in (1, 2)}
         try:
@@ -191,6 +197,7 @@ def main() -> None:
                     assert not batch.failed, [item.error for item in batch.failed]
                     times[f"warm {workers}"].append(batch.seconds)
                     task_sums[workers].append(sum(item.seconds for item in batch.items))
+                    cpu_sums[workers].append(sum(item.cpu_seconds for item in batch.items))
                     same &= identical(reference, out)
                 loads.append(os.getloadavg()[0])
                 print(f"round {round_ + 1}: " + ", ".join(f"{key} {values[-1]:.2f} s" for key, values in times.items()))
@@ -230,7 +237,7 @@ def main() -> None:
         row("run_batch, running warm cluster, 1 worker", "warm 1", None),
         row("run_batch, running warm cluster, 2 workers", "warm 2", "warm 1"),
         "",
-        contention_text(times, task_sums),
+        contention_text(times, task_sums, cpu_sums),
         "",
         "\"Own local cluster\" includes starting the cluster, the workers' imports and loading the cached "
         "Numba kernels (a fixed cost of a few seconds per batch); \"running warm cluster\" is the work alone.",

@@ -52,6 +52,8 @@ def test_local_cluster_outputs_match_sequential_runs(local_batch, sequential):
         assert item.out.name == f"sim-{spec[4:]}-seed0"
         assert item.summary.frames == FRAMES and item.summary.metrics["frames"] == FRAMES
         assert item.worker is not None and item.worker.startswith("tcp://")
+        # The task's thread ran the whole recording: most of its wall time is CPU time.
+        assert 0 < item.cpu_seconds <= item.seconds
         for name in DETERMINISTIC:
             assert (item.out / name).read_bytes() == (sequential[spec] / name).read_bytes(), f"{spec}: {name} differs"
         reference = json.loads((sequential[spec] / "metrics.json").read_text())
@@ -150,3 +152,29 @@ def test_output_names_are_unique_and_stable():
     assert names == ["sim-arena-seed0", "sim-arena-seed1", "sim-arena-seed0-2", "Scan", "scan-2", "run", "frames",
                      "a-folder"]
     assert names == output_names(inputs, [0, 1, 0, 0, 0, 0, 0, 0])
+
+
+def test_local_cluster_workers_do_not_profile(distributed):
+    """Dask's statistical profiler samples a busy task's stack every 10 ms; the batch's own workers run none
+    (it costs CPU on the cores the recordings need, and only a dashboard would show it)."""
+    from rangesurf.batch import _local_cluster
+
+    def busy() -> None:
+        import time
+
+        end = time.perf_counter() + 0.5
+        while time.perf_counter() < end:
+            sum(range(1000))
+
+    def samples(cluster) -> int:
+        import time
+
+        with distributed.Client(cluster) as client:
+            client.submit(busy, pure=False).result()
+            time.sleep(1.5)  # a worker hands its samples over at the end of each 1-second cycle
+            return client.profile()["count"]
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False, dashboard_address=None) as plain:
+        assert samples(plain) > 0  # Dask's default: the profiler runs
+    with _local_cluster(distributed, 1) as ours:
+        assert samples(ours) == 0

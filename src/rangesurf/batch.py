@@ -80,6 +80,9 @@ class BatchItem:
         Wall time of its task on the worker (0 when it never ran).
     worker : str or None
         Address of the worker that ran it.
+    cpu_seconds : float
+        CPU time of the thread that ran its task (0 when it never ran); less
+        than ``seconds`` by the time the task waited for a core.
     """
 
     input: str
@@ -88,6 +91,7 @@ class BatchItem:
     error: str | None = None
     seconds: float = 0.0
     worker: str | None = None
+    cpu_seconds: float = 0.0
 
     @property
     def ok(self) -> bool:
@@ -229,8 +233,9 @@ def run_batch(
             for future in distributed.as_completed(futures):
                 position = futures[future]
                 try:
-                    summary, seconds, worker = future.result()
-                    items[position] = BatchItem(inputs[position], folders[position], summary, None, seconds, worker)
+                    summary, seconds, cpu_seconds, worker = future.result()
+                    items[position] = BatchItem(inputs[position], folders[position], summary, None, seconds, worker,
+                                                cpu_seconds)
                 except Exception as error:  # noqa: BLE001 - any failure of one input is reported, the batch goes on
                     items[position] = BatchItem(inputs[position], folders[position], error=_describe(error))
                 bar.update(1)
@@ -332,8 +337,12 @@ def _local_cluster(distributed: Any, workers: int) -> Any:
     if inherited is not None and inherited == str(dask_value):
         del os.environ[key]
     try:
+        # Nor do the workers run Dask's statistical profiler, whose samples (every 10 ms) only a dashboard
+        # shows and which cost CPU time on the cores the recordings need: with it, a worker process spent
+        # 2.2 s beside its tasks' 32.6 s (4 SR-3000 recordings of 150 frames), without it 1.0 s.
         # The scheduler's HTTP routes go on a free port rather than 8787, which another cluster may hold.
-        with dask.config.set({f"distributed.nanny.pre-spawn-environ.{key}": None}):
+        with dask.config.set({f"distributed.nanny.pre-spawn-environ.{key}": None,
+                              "distributed.worker.profile.enabled": False}):
             return distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
                                             env=dict(_ONE_THREAD), dashboard_address=None,
                                             scheduler_kwargs={"dashboard_address": ":0"}, silence_logs=logging.CRITICAL)
@@ -343,13 +352,16 @@ def _local_cluster(distributed: Any, workers: int) -> Any:
 
 
 def _run_recording(spec: str, out: str, *, config: PipelineConfig | None, frames: int | None, sensor: str | None,
-                   seed: int, overwrite: bool) -> tuple[RunSummary, float, str | None]:
-    """The task: one recording through `rangesurf.runner.run` on a worker, BLAS and OpenMP on one thread."""
+                   seed: int, overwrite: bool) -> tuple[RunSummary, float, float, str | None]:
+    """The task: one recording through `rangesurf.runner.run` on a worker, BLAS and OpenMP on one thread.
+
+    Returns the summary, the task's wall and thread CPU seconds, and the worker's address.
+    """
     from threadpoolctl import threadpool_limits
 
     from rangesurf.runner import run
 
-    started = time.perf_counter()
+    started, cpu_started = time.perf_counter(), time.thread_time()
     with threadpool_limits(limits=1):
         summary = run(spec, out, config=config, frames=frames, sensor=sensor, seed=seed, overwrite=overwrite,
                       progress=False)
@@ -359,7 +371,7 @@ def _run_recording(spec: str, out: str, *, config: PipelineConfig | None, frames
         worker = get_worker().address
     except (ImportError, ValueError):
         worker = None
-    return summary, time.perf_counter() - started, worker
+    return summary, time.perf_counter() - started, time.thread_time() - cpu_started, worker
 
 
 def _describe(error: BaseException) -> str:
@@ -380,6 +392,7 @@ def _write_report(path: Path, batch: BatchSummary) -> None:
                 "ok": item.ok,
                 "error": item.error,
                 "seconds": round(item.seconds, 3),
+                "cpu_seconds": round(item.cpu_seconds, 3),
                 "worker": item.worker,
                 "frames": item.summary.frames if item.summary else None,
                 "skipped": len(item.summary.skipped) if item.summary else None,
