@@ -152,15 +152,17 @@ def _points(frame) -> np.ndarray:
 def contention_text(times: dict[str, list[float]], task_sums: dict[int, list[float]],
                     cpu_sums: dict[int, list[float]]) -> str:
     """Where the warm 2-worker batch's time goes: the tasks themselves (slower side by side) or waiting."""
+    # One round's 1- and 2-worker batches, which run seconds apart: the machine's speed drifts between rounds.
     best = min(range(len(times["warm 2"])), key=lambda k: times["warm 2"][k])
-    alone = min(range(len(task_sums[1])), key=lambda k: task_sums[1][k])
-    wall_1, wall_2 = task_sums[1][alone], task_sums[2][best]
-    cpu_1, cpu_2 = cpu_sums[1][alone], cpu_sums[2][best]
-    return (f"The warm batches' tasks took {wall_1:.2f} s summed on 1 worker and {wall_2:.2f} s on 2 "
+    wall_1, wall_2 = task_sums[1][best], task_sums[2][best]
+    cpu_1, cpu_2 = cpu_sums[1][best], cpu_sums[2][best]
+    return (f"In the round of the fastest warm 2-worker batch, the warm batches' tasks took {wall_1:.2f} s summed "
+            f"on 1 worker and {wall_2:.2f} s on 2 "
             f"({100 * (wall_2 / wall_1 - 1):+.0f} %); their threads' CPU time {cpu_1:.2f} s and {cpu_2:.2f} s "
-            f"({100 * (cpu_2 / cpu_1 - 1):+.0f} %: what two recordings at once cost each other through shared "
-            "caches and memory). The rest is waiting for a core: the scheduler and the workers' own Dask threads "
-            "run on the same two cores, which with one worker have a core to themselves. The 2-worker batch's "
+            f"({100 * (cpu_2 / cpu_1 - 1):+.0f} %: the tasks' own work, two at a time on cores that share caches "
+            "and memory). The rest of their wall time is waiting for a core: the scheduler and the workers' own "
+            "Dask threads run on the same two cores, which with one worker have a core to themselves. The 2-worker "
+            "batch's "
             f"wall time is {100 * (times['warm 2'][best] / (wall_2 / 2) - 1):+.0f} % over half its tasks' sum "
             "(the two workers' shares of the recordings differ, and the last task runs alone).")
 
@@ -215,10 +217,14 @@ def main() -> None:
     best = {key: min(values) for key, values in times.items()}
 
     def row(label: str, key: str, baseline: str | None) -> str:
-        ratio = f"{best[baseline] / best[key]:.2f}x" if baseline else "—"
+        ratio = per_round = "—"
+        if baseline:
+            ratio = f"{best[baseline] / best[key]:.2f}x"
+            ratios = [one / two for one, two in zip(times[baseline], times[key])]
+            per_round = f"{np.median(ratios):.2f}x ({' / '.join(f'{value:.2f}' for value in ratios)})"
         versus = f"{best['sequential'] / best[key]:.2f}x"
         rounds_text = " / ".join(f"{value:.2f}" for value in times[key])
-        return f"| {label} | {best[key]:.2f} | {ratio} | {versus} | {rounds_text} |"
+        return f"| {label} | {best[key]:.2f} | {ratio} | {per_round} | {versus} | {rounds_text} |"
 
     command = f".venv/bin/python benchmarks/batch.py {n_frames} {rounds}"
     lines = [
@@ -227,10 +233,13 @@ def main() -> None:
         f"A batch of {len(INPUTS)} simulated SR-3000 recordings of {n_frames} frames (arena, corridor, arena, "
         f"corridor; seeds {', '.join(map(str, SEEDS))}), every output written (model, report, ...). One Dask task "
         f"per recording, single-threaded worker processes. Wall time in seconds, the fastest of {rounds} "
-        "interleaved rounds (others share this machine).",
+        "interleaved rounds (others share this machine). Speed-up 1 -> 2 workers: of the fastest batches, and "
+        "per round (in each round the 1-worker batches run just before the 2-worker ones): the median and each "
+        "round's; the machine's speed drifts between rounds, so the fastest of each may come from rounds of "
+        "different speed, and the per-round median is the steadier figure.",
         "",
-        "| run | wall s | speed-up 1 -> 2 workers | vs sequential | every round (s) |",
-        "|---|---:|---:|---:|---:|",
+        "| run | wall s | speed-up 1 -> 2 workers, fastest | per round: median (each) | vs sequential | every round (s) |",
+        "|---|---:|---:|---:|---:|---:|",
         row("sequential, in process (reference)", "sequential", None),
         row("run_batch, own local cluster, 1 worker", "local 1", None),
         row("run_batch, own local cluster, 2 workers", "local 2", "local 1"),
