@@ -238,7 +238,8 @@ def main() -> None:
         "round's; the machine's speed drifts between rounds, so the fastest of each may come from rounds of "
         "different speed, and the per-round median is the steadier figure.",
         "",
-        "| run | wall s | speed-up 1 -> 2 workers, fastest | per round: median (each) | vs sequential | every round (s) |",
+        "| run | wall s | speed-up 1 -> 2 workers, fastest | per round: median (each) | vs sequential "
+        "| every round (s) |",
         "|---|---:|---:|---:|---:|---:|",
         row("sequential, in process (reference)", "sequential", None),
         row("run_batch, own local cluster, 1 worker", "local 1", None),
