@@ -12,14 +12,16 @@ corridor, each with its own seed) goes through `rangesurf.batch.run_batch`:
   passed by address (the scaling of the work alone, without the cluster's
   start and the workers' first imports);
 * for reference, the same four `rangesurf.runner.run` calls one after the
-  other in this process.
+  other in this process;
+* three of the recordings on the warm 2-worker cluster, one task per
+  recording against chains of parts (`run_batch`'s ``part_frames``).
 
 Each is timed ``ROUNDS`` times, interleaved; the table shows the fastest
 (others share this machine) and every round. Every batch's trajectories
 and models are compared byte for byte with the sequential runs'. Last, the
 cost of one Dask task that carries a frame to a worker and its points back,
-against the per-frame stages that could run as such tasks: why a recording
-is one task; and the CPU time of one recording in this process, in a worker
+against the per-frame stages that could run as such tasks: why there are
+no per-frame tasks; and the CPU time of one recording in this process, in a worker
 of `run_batch`'s local cluster and in a worker of a default Dask one.
 """
 
@@ -30,6 +32,7 @@ import os
 for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_name, "1")
 
+import inspect  # noqa: E402
 import logging  # noqa: E402
 import shutil  # noqa: E402
 import sys  # noqa: E402
@@ -47,6 +50,7 @@ from rangesurf.runner import run  # noqa: E402
 INPUTS = ["sim:arena", "sim:corridor", "sim:arena", "sim:corridor"]
 SEEDS = [1, 2, 3, 4]
 COMPARED = ("trajectory.txt", "model.ply")
+PART_FRAMES = inspect.signature(run_batch).parameters["part_frames"].default
 
 
 def sequential(root: Path, n_frames: int) -> float:
@@ -76,8 +80,9 @@ def source_times() -> dict[str, float]:
     return {str(path): path.stat().st_mtime for path in package.rglob("*.py")}
 
 
-def identical(reference: Path, batch_out: Path) -> bool:
-    names = output_names(INPUTS, SEEDS)
+def identical(reference: Path, batch_out: Path, count: int = len(INPUTS)) -> bool:
+    """Whether the first ``count`` recordings' outputs are the sequential runs' bytes."""
+    names = output_names(INPUTS, SEEDS)[:count]
     return all((reference / name / file).read_bytes() == (batch_out / name / file).read_bytes()
                for name in names for file in COMPARED)
 
@@ -167,6 +172,19 @@ def contention_text(times: dict[str, list[float]], task_sums: dict[int, list[flo
             "(the two workers' shares of the recordings differ, and the last task runs alone).")
 
 
+def three_text(times: dict[str, list[float]], n_frames: int) -> str:
+    """Three recordings on two warm workers: one task each against chains of parts."""
+    ratios = [whole / parts for whole, parts in zip(times["three whole"], times["three parts"])]
+    return (f"Three recordings (arena, corridor, arena) on the warm 2-worker cluster: one task per recording "
+            f"(`part_frames={n_frames}`) {min(times['three whole']):.2f} s, in parts of {PART_FRAMES} frames "
+            f"(the default) {min(times['three parts']):.2f} s (fastest of the rounds; every round: "
+            f"{' / '.join(f'{value:.2f}' for value in times['three whole'])} s and "
+            f"{' / '.join(f'{value:.2f}' for value in times['three parts'])} s); one task each over parts, per round: "
+            f"{np.median(ratios):.2f}x median ({' / '.join(f'{value:.2f}' for value in ratios)}). One task each, "
+            "one worker runs two recordings while the other idles after one; in parts the recordings take turns. "
+            "The 4-recording batches above run in parts too (more recordings than workers).")
+
+
 def main() -> None:
     n_frames = int(sys.argv[1]) if len(sys.argv) > 1 else 60
     rounds = int(sys.argv[2]) if len(sys.argv) > 2 else 3
@@ -177,7 +195,8 @@ def main() -> None:
     try:
         reference = root / "sequential"
         sequential(reference, 2)  # compiles or loads the Numba kernels, filling the on-disk cache for the workers
-        times: dict[str, list[float]] = {key: [] for key in ("sequential", "local 1", "local 2", "warm 1", "warm 2")}
+        times: dict[str, list[float]] = {key: [] for key in ("sequential", "local 1", "local 2", "warm 1", "warm 2",
+                                                             "three whole", "three parts")}
         # Per round, the warm batches' task times summed (each task's wall and thread CPU time on its worker).
         task_sums: dict[int, list[float]] = {1: [], 2: []}
         cpu_sums: dict[int, list[float]] = {1: [], 2: []}
@@ -201,6 +220,14 @@ def main() -> None:
                     task_sums[workers].append(sum(item.seconds for item in batch.items))
                     cpu_sums[workers].append(sum(item.cpu_seconds for item in batch.items))
                     same &= identical(reference, out)
+                # Three recordings on two workers: one task each (parts as long as the recordings), and in parts.
+                for key, part_frames in (("three whole", n_frames), ("three parts", PART_FRAMES)):
+                    out = root / key.replace(" ", "-")
+                    batch = run_batch(INPUTS[:3], out, scheduler=warm[2].scheduler_address, frames=n_frames,
+                                      seed=SEEDS[:3], overwrite=True, part_frames=part_frames, progress=False)
+                    assert not batch.failed, [item.error for item in batch.failed]
+                    times[key].append(batch.seconds)
+                    same &= identical(reference, out, 3)
                 loads.append(os.getloadavg()[0])
                 print(f"round {round_ + 1}: " + ", ".join(f"{key} {values[-1]:.2f} s" for key, values in times.items()))
         finally:
@@ -231,8 +258,9 @@ def main() -> None:
         f"Machine: {machine_description()}. Command: `{command}`.",
         "",
         f"A batch of {len(INPUTS)} simulated SR-3000 recordings of {n_frames} frames (arena, corridor, arena, "
-        f"corridor; seeds {', '.join(map(str, SEEDS))}), every output written (model, report, ...). One Dask task "
-        f"per recording, single-threaded worker processes. Wall time in seconds, the fastest of {rounds} "
+        f"corridor; seeds {', '.join(map(str, SEEDS))}), every output written (model, report, ...), "
+        f"single-threaded worker processes; with more recordings than workers, each recording runs as a chain of "
+        f"tasks of {PART_FRAMES} frames (`run_batch(part_frames=...)`). Wall time in seconds, the fastest of {rounds} "
         "interleaved rounds (others share this machine). Speed-up 1 -> 2 workers: of the fastest batches, and "
         "per round (in each round the 1-worker batches run just before the 2-worker ones): the median and each "
         "round's; the machine's speed drifts between rounds, so the fastest of each may come from rounds of "
@@ -246,6 +274,8 @@ def main() -> None:
         row("run_batch, own local cluster, 2 workers", "local 2", "local 1"),
         row("run_batch, running warm cluster, 1 worker", "warm 1", None),
         row("run_batch, running warm cluster, 2 workers", "warm 2", "warm 1"),
+        "",
+        three_text(times, n_frames),
         "",
         contention_text(times, task_sums, cpu_sums),
         "",
@@ -261,8 +291,8 @@ def main() -> None:
         f"vertices; timings.csv) plus the normals for registration: per-frame tasks would add about "
         f"{100 * many / stage_ms:.0f} % of that work as scheduling and copying on the same two cores (more for the "
         "segments and vertex sets they would really return), and could only help when there are fewer recordings "
-        "than workers. A batch with at least as many recordings as workers keeps every worker "
-        "busy with one task per recording.",
+        "than workers. A batch with at least as many recordings as workers keeps every worker busy, to the "
+        "end when the recordings run in parts.",
         "",
         f"CPU seconds of one {n_frames}-frame recording (thread time, fastest of 2): "
         + ", ".join(f"{label} {value:.2f}" for label, value in cpu.items())

@@ -37,10 +37,11 @@ def sequential(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def local_batch(distributed, sequential, tmp_path_factory):
-    """Both scenes and a missing file on a local cluster of two worker processes."""
+    """Both scenes and a missing file on a local cluster of two worker processes: three inputs on two
+    workers, so each recording runs as a chain of parts (of 3 frames here)."""
     out = tmp_path_factory.mktemp("batch")
     inputs = [*SCENES, str(out / "missing" / "nothing.npz")]
-    return run_batch(inputs, out / "runs", workers=2, frames=FRAMES, sensor="sr3000", progress=False)
+    return run_batch(inputs, out / "runs", workers=2, frames=FRAMES, sensor="sr3000", part_frames=3, progress=False)
 
 
 def test_local_cluster_outputs_match_sequential_runs(local_batch, sequential):
@@ -51,6 +52,7 @@ def test_local_cluster_outputs_match_sequential_runs(local_batch, sequential):
         assert item.ok, item.error
         assert item.out.name == f"sim-{spec[4:]}-seed0"
         assert item.summary.frames == FRAMES and item.summary.metrics["frames"] == FRAMES
+        assert item.parts == 3  # 3 + 3 + 2 frames, each part resumed from the one before's checkpoint
         assert item.worker is not None and item.worker.startswith("tcp://")
         # The task's thread ran the whole recording: most of its wall time is CPU time.
         assert 0 < item.cpu_seconds <= item.seconds
@@ -137,6 +139,7 @@ def test_missing_extra_names_it(monkeypatch, tmp_path):
         ({"seed": [0, 1, 2]}, "got 3 seeds for 2 inputs"),
         ({"workers": 0}, "workers must be at least 1, got 0"),
         ({"workers": 2, "scheduler": "tcp://127.0.0.1:8786"}, "has its own workers"),
+        ({"part_frames": 0}, "part_frames must be at least 1, got 0"),
     ],
 )
 def test_bad_arguments(tmp_path, arguments, message):

@@ -91,6 +91,23 @@ def test_resume_continues_as_if_uninterrupted(tmp_path):
     assert len(timings) == 1 + 9  # the earlier session's rows travel in the checkpoint
 
 
+def test_a_run_in_parts_gives_the_outputs_of_one_run(tmp_path):
+    straight = run("sim:arena", tmp_path / "straight", frames=9, seed=2, progress=False)
+    parts = tmp_path / "parts"
+    first = run("sim:arena", parts, frames=9, seed=2, until=4, progress=False)
+    assert first.paused and first.frames == 4
+    assert not (parts / "model.ply").exists()  # paused: the checkpoint only
+    second = run("sim:arena", parts, frames=9, seed=2, resume=True, until=7, progress=False)
+    assert second.paused and second.frames == 3
+    last = run("sim:arena", parts, frames=9, seed=2, resume=True, until=20, progress=False)
+    assert not last.paused and last.frames == 2  # the input ended first: the run finished
+    for name in ("trajectory.txt", "model.ply"):
+        assert (parts / name).read_bytes() == (tmp_path / "straight" / name).read_bytes()
+    assert last.metrics["accuracy"] == straight.metrics["accuracy"]
+    with pytest.raises(ValueError, match="until=9 must lie past the 9 input positions"):
+        run("sim:arena", parts, frames=9, seed=2, resume=True, until=9, progress=False)
+
+
 def test_ctrl_c_stops_cleanly_with_a_resumable_checkpoint(tmp_path, monkeypatch):
     original = Pipeline.process
 
@@ -123,6 +140,18 @@ def test_an_unreadable_frame_is_reported_and_skipped(tmp_path):
     assert files[2].name in source and files[2].name in error
     metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
     assert metrics["skipped"][0]["source"] == source
+
+
+def test_a_resumed_run_lists_the_frames_skipped_before(tmp_path):
+    files = _frames_with_a_broken_one(tmp_path / "frames")
+    paused = run(str(tmp_path / "frames"), tmp_path / "out", until=3, progress=False)
+    assert paused.paused and paused.frames == 2 and len(paused.skipped) == 1
+    summary = run(str(tmp_path / "frames"), tmp_path / "out", resume=True, progress=False)
+    assert summary.frames == 1
+    (source, error), = summary.skipped
+    assert files[2].name in source and files[2].name in error
+    metrics = json.loads((tmp_path / "out" / "metrics.json").read_text())
+    assert [entry["source"] for entry in metrics["skipped"]] == [source] and metrics["frames"] == 3
 
 
 def test_an_unreadable_frame_can_stop_the_run(tmp_path):
@@ -166,6 +195,7 @@ def test_resume_reads_nothing_it_merged_before(tmp_path, monkeypatch):
     original = runner.iter_frames
     monkeypatch.setattr(runner, "iter_frames", lambda path, **options: (read.append(Path(path).name), original(path, **options))[1])
     resumed = run(str(tmp_path / "frames"), tmp_path / "out", resume=True, progress=False)
-    assert read == [files[3].name] and resumed.frames == 1 and not resumed.skipped
+    # Frame 2 is not read again; the run's list of skipped inputs still has it, once.
+    assert read == [files[3].name] and resumed.frames == 1 and resumed.skipped == first.skipped
     _, poses = read_tum_trajectory(tmp_path / "out" / "trajectory.txt")
     assert len(poses) == 3

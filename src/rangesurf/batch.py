@@ -3,22 +3,27 @@
 `run_batch` gives every input its own output folder under ``out`` and runs
 them as tasks on a ``dask.distributed`` cluster: the one at ``scheduler``,
 or a local cluster of single-threaded worker processes started for the
-batch. One recording is one task. Inside it the frames go through the
-`Pipeline` in order, exactly as in ``rangesurf run``, because registration
-and merging depend on the previous frame; the parallelism is across
-recordings, so the outputs are the same bytes as a sequential run's (apart
-from the timings). An input that fails is reported with its error and the
-batch goes on; ``out/batch.json`` lists every input, its folder and how its
-run ended.
+batch. One recording is one task, or, with more recordings than worker
+threads, a chain of tasks over parts of it (``part_frames``). Inside, the
+frames go through the `Pipeline` in order, exactly as in ``rangesurf run``,
+because registration and merging depend on the previous frame; the
+parallelism is across recordings, so the outputs are the same bytes as a
+sequential run's (apart from the timings). An input that fails is reported
+with its error and the batch goes on; ``out/batch.json`` lists every input,
+its folder and how its run ended.
 
 Dask is an optional extra: ``pip install 'rangesurf[distributed]'``.
 
-Why one task per recording: a frame's independent stages (denoising,
+Why not a task per frame: a frame's independent stages (denoising,
 segmentation, segment vertices, the normals for registration) take about 6
 of an SR-3000 frame's 17 ms, and a Dask task that hands a frame to another
 process and its results back costs about 3 ms even when many are queued
-(``benchmarks/batch.py``); a batch with at least as many recordings as
-workers keeps every worker busy without splitting recordings.
+(``benchmarks/batch.py``). Why parts: with one task per recording, three
+recordings on two workers take two recordings' time, the second worker idle
+for the last one; as parts (50 frames each by default, about 2.5 s of
+SR-3000 frames) the recordings take turns on both workers. A part starts
+from its recording's checkpoint (a few MB, read in about 25 ms); the run
+writes one every 25 frames anyway.
 
 A script that starts a local cluster must call `run_batch` under
 ``if __name__ == "__main__":``: the worker processes are spawned, and
@@ -38,6 +43,7 @@ Two short simulated recordings on a local cluster of two worker processes
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import numbers
@@ -83,6 +89,10 @@ class BatchItem:
     cpu_seconds : float
         CPU time of the thread that ran its task (0 when it never ran); less
         than ``seconds`` by the time the task waited for a core.
+    parts : int
+        Tasks its run took: 1, or the parts of its chain (``part_frames``);
+        ``seconds``, ``cpu_seconds`` and the summary's frames and seconds
+        are summed over them, ``worker`` is the last one's.
     """
 
     input: str
@@ -92,6 +102,7 @@ class BatchItem:
     seconds: float = 0.0
     worker: str | None = None
     cpu_seconds: float = 0.0
+    parts: int = 1
 
     @property
     def ok(self) -> bool:
@@ -140,6 +151,7 @@ def run_batch(
     sensor: str | None = None,
     seed: int | Sequence[int] = 0,
     overwrite: bool = False,
+    part_frames: int = 50,
     progress: bool = True,
 ) -> BatchSummary:
     """Run every input through the main job on a Dask cluster, each into its own folder.
@@ -171,6 +183,13 @@ def run_batch(
     overwrite : bool
         Replace the outputs of an earlier run in an input's folder (without
         it, an input whose folder is not empty fails).
+    part_frames : int
+        With more inputs than the cluster has worker threads, each recording
+        runs as a chain of tasks over this many input positions each, the
+        pipeline's state handed on in its checkpoint (``run(until=...)``,
+        then ``resume``; the same outputs): the recordings take turns, so
+        that three on two workers take about 1.5 recordings' time rather
+        than two. With no more inputs than threads, one task per recording.
     progress : bool
         Show a progress bar over the recordings.
 
@@ -188,7 +207,7 @@ def run_batch(
         No scheduler answers at ``scheduler``.
     ValueError
         No inputs, a seed list of another length, ``workers`` < 1 or given
-        with ``scheduler``.
+        with ``scheduler``, ``part_frames`` < 1.
 
     Notes
     -----
@@ -208,6 +227,8 @@ def run_batch(
         raise ValueError(f"workers={workers} applies to a local cluster; the cluster at {scheduler!r} has its own workers")
     if workers is not None and workers < 1:
         raise ValueError(f"workers must be at least 1, got {workers}")
+    if part_frames < 1:
+        raise ValueError(f"part_frames must be at least 1, got {part_frames}")
     distributed = _import_distributed()
 
     out = Path(out).absolute()
@@ -220,24 +241,40 @@ def run_batch(
                              startup_seconds=time.perf_counter() - started)
         # Keys unique across batches: a shared scheduler would hand a second batch the first one's results.
         token = uuid.uuid4().hex[:12]
-        futures = {}
-        for position, (spec, folder, one_seed) in enumerate(zip(inputs, folders, seeds)):
-            future = client.submit(_run_recording, _located(spec), str(folder), config=config, frames=frames,
-                                   sensor=sensor, seed=one_seed, overwrite=overwrite,
-                                   key=f"rangesurf-run-{folder.name}-{token}", pure=False)
-            futures[future] = position
+        # With more recordings than workers, each is a chain of tasks over parts of it (the pipeline's state
+        # handed on in its checkpoint), a part submitted when the one before ends: the recordings take turns
+        # and end together, where one task each would leave workers idle while the last ones run.
+        chained = len(inputs) > sum(client.nthreads().values())
+        futures: dict[Any, tuple[int, int]] = {}
+
+        def submit(position: int, part: int) -> Any:
+            folder = folders[position]
+            future = client.submit(_run_recording, _located(inputs[position]), str(folder),
+                                   config=config if part == 0 else None, frames=frames, sensor=sensor,
+                                   seed=seeds[position], overwrite=overwrite, resume=part > 0,
+                                   until=(part + 1) * part_frames if chained else None,
+                                   key=f"rangesurf-run-{folder.name}-{part}-{token}", pure=False)
+            futures[future] = (position, part)
+            return future
+
         items: list[BatchItem | None] = [None] * len(inputs)
+        parts: list[list[tuple[RunSummary, float, float, str | None]]] = [[] for _ in inputs]
         from tqdm import tqdm
 
         with tqdm(total=len(inputs), desc="rangesurf batch", unit="recording", disable=not progress, leave=False) as bar:
-            for future in distributed.as_completed(futures):
-                position = futures[future]
+            running = distributed.as_completed([submit(position, 0) for position in range(len(inputs))])
+            for future in running:
+                position, part = futures.pop(future)
                 try:
-                    summary, seconds, cpu_seconds, worker = future.result()
-                    items[position] = BatchItem(inputs[position], folders[position], summary, None, seconds, worker,
-                                                cpu_seconds)
+                    parts[position].append(future.result())
                 except Exception as error:  # noqa: BLE001 - any failure of one input is reported, the batch goes on
                     items[position] = BatchItem(inputs[position], folders[position], error=_describe(error))
+                    bar.update(1)
+                    continue
+                if parts[position][-1][0].paused:
+                    running.add(submit(position, part + 1))
+                    continue
+                items[position] = _whole_run(inputs[position], folders[position], parts[position])
                 bar.update(1)
     finally:
         client.close()
@@ -352,8 +389,10 @@ def _local_cluster(distributed: Any, workers: int) -> Any:
 
 
 def _run_recording(spec: str, out: str, *, config: PipelineConfig | None, frames: int | None, sensor: str | None,
-                   seed: int, overwrite: bool) -> tuple[RunSummary, float, float, str | None]:
-    """The task: one recording through `rangesurf.runner.run` on a worker, BLAS and OpenMP on one thread.
+                   seed: int, overwrite: bool, resume: bool = False,
+                   until: int | None = None) -> tuple[RunSummary, float, float, str | None]:
+    """The task: a recording, or a part of it, through `rangesurf.runner.run` on a worker, BLAS and OpenMP on one
+    thread.
 
     Returns the summary, the task's wall and thread CPU seconds, and the worker's address.
     """
@@ -364,7 +403,7 @@ def _run_recording(spec: str, out: str, *, config: PipelineConfig | None, frames
     started, cpu_started = time.perf_counter(), time.thread_time()
     with threadpool_limits(limits=1):
         summary = run(spec, out, config=config, frames=frames, sensor=sensor, seed=seed, overwrite=overwrite,
-                      progress=False)
+                      resume=resume, until=until, progress=False)
     try:
         from distributed import get_worker
 
@@ -372,6 +411,17 @@ def _run_recording(spec: str, out: str, *, config: PipelineConfig | None, frames
     except (ImportError, ValueError):
         worker = None
     return summary, time.perf_counter() - started, time.thread_time() - cpu_started, worker
+
+
+def _whole_run(spec: str, folder: Path, parts: list[tuple[RunSummary, float, float, str | None]]) -> BatchItem:
+    """A recording's `BatchItem` from the (summary, seconds, CPU seconds, worker) of its parts: the last part's
+    summary (whose skipped inputs are all parts') with the frames and seconds of all summed, the worker of the
+    last."""
+    summaries = [summary for summary, _, _, _ in parts]
+    whole = dataclasses.replace(summaries[-1], frames=sum(summary.frames for summary in summaries),
+                                seconds=sum(summary.seconds for summary in summaries))
+    return BatchItem(spec, folder, whole, None, sum(part[1] for part in parts), parts[-1][3],
+                     sum(part[2] for part in parts), len(parts))
 
 
 def _describe(error: BaseException) -> str:
@@ -393,6 +443,7 @@ def _write_report(path: Path, batch: BatchSummary) -> None:
                 "error": item.error,
                 "seconds": round(item.seconds, 3),
                 "cpu_seconds": round(item.cpu_seconds, 3),
+                "parts": item.parts,
                 "worker": item.worker,
                 "frames": item.summary.frames if item.summary else None,
                 "skipped": len(item.summary.skipped) if item.summary else None,

@@ -161,13 +161,15 @@ def _command_batch(args: argparse.Namespace) -> int:
     config = PipelineConfig.load(args.config) if args.config else None
     seed = args.seed[0] if len(args.seed) == 1 else args.seed
     batch = run_batch(args.inputs, args.out, scheduler=args.scheduler, workers=args.workers, config=config,
-                      frames=args.frames, sensor=args.sensor, seed=seed, overwrite=args.overwrite, progress=not args.quiet)
+                      frames=args.frames, sensor=args.sensor, seed=seed, overwrite=args.overwrite,
+                      part_frames=args.part_frames, progress=not args.quiet)
     print(f"rangesurf batch: {len(batch.items)} inputs on {batch.workers} Dask worker(s) at {batch.scheduler} in "
           f"{batch.seconds:.1f} s, {len(batch.failed)} failed; summary in {batch.out / 'batch.json'}")
     for item in batch.items:
         if item.ok:
             stopped = f"; stopped: {item.summary.stopped}" if item.summary.stopped else ""
-            print(f"  {item.input} -> {item.out}: {item.summary.frames} frames in {item.seconds:.1f} s{stopped}")
+            parts = f" ({item.parts} parts)" if item.parts > 1 else ""
+            print(f"  {item.input} -> {item.out}: {item.summary.frames} frames in {item.seconds:.1f} s{parts}{stopped}")
         else:
             print(f"  {item.input} -> {item.out}: FAILED: {item.error}")
     return 1 if batch.failed else 0
@@ -417,6 +419,9 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("--seed", type=int, nargs="+", default=[0],
                        help="simulation seed: one for all inputs or one per input (default 0)")
     batch.add_argument("--overwrite", action="store_true", help="replace the outputs of earlier runs in the input folders")
+    batch.add_argument("--part-frames", type=int, default=50, metavar="N",
+                       help="with more inputs than workers, run each recording as a chain of tasks of N frames, "
+                            "so that the recordings take turns (default: 50)")
     batch.add_argument("--quiet", action="store_true", help="no progress bar")
     batch.set_defaults(handler=_command_batch)
 

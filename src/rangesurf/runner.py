@@ -74,6 +74,7 @@ class RunSummary:
     postponed: int = 0
     seconds: float = 0.0
     stopped: str | None = None
+    paused: bool = False
     metrics: dict = field(default_factory=dict)
 
 
@@ -147,6 +148,7 @@ def run(
     seed: int = 0,
     overwrite: bool = False,
     resume: bool = False,
+    until: int | None = None,
     realtime: bool = False,
     progress: bool = True,
     viewer=None,
@@ -171,6 +173,13 @@ def run(
         Replace the outputs of an earlier run.
     resume : bool
         Continue from ``out/checkpoint.npz``: the frames it holds are skipped.
+    until : int, optional
+        Stop before this input position (counted from the first, the ones a
+        resumed run skips included) with the checkpoint saved and no outputs
+        written: the summary says ``paused``, and a call with ``resume=True``
+        goes on from there, to the same outputs as a run without stops. An
+        input that ends first finishes the run as usual. (`rangesurf.batch`
+        runs recordings in such parts.)
     realtime : bool
         Feed frames at the sensor's frame rate (wall clock) and count the
         frames the pipeline did not finish within their period.
@@ -215,9 +224,14 @@ def run(
     config.save(out / "config.toml")
     # Input positions consumed before the checkpoint (frames merged plus unreadable ones skipped).
     already = int(pipeline.checkpoint_extra["positions"]) if "positions" in pipeline.checkpoint_extra else pipeline.frames
+    if until is not None and until <= already:
+        raise ValueError(f"until={until} must lie past the {already} input positions {checkpoint} already holds")
     items, total, known = open_input(spec, frames=frames, sensor=sensor, seed=seed, skip=already)
     summary = RunSummary(out=out)
     rows: list[dict] = _rows_from_array(pipeline.checkpoint_extra.get("timings")) if resume else []
+    if resume and "skipped" in pipeline.checkpoint_extra:
+        # The inputs earlier sessions could not read: the run's metrics list them all.
+        summary.skipped = [(str(source), str(error)) for source, error in pipeline.checkpoint_extra["skipped"]]
     truths: list[np.ndarray | None] = []
     last: FrameResult | None = None
     last_frame: RangeFrame | None = None
@@ -235,6 +249,9 @@ def run(
                     truths.append(item.true_pose)
                 bar.update(1)
                 continue
+            if until is not None and position >= until:
+                summary.paused = True
+                break
             consumed = position + 1
             if item.error is not None:
                 summary.skipped.append((item.source, item.error))
@@ -260,14 +277,16 @@ def run(
             summary.frames += 1
             every = config.run.checkpoint_every
             if every and pipeline.frames % every == 0:
-                pipeline.save_checkpoint(checkpoint, extra={"timings": _rows_to_array(rows), "positions": np.array(consumed)})
+                pipeline.save_checkpoint(checkpoint, extra=_checkpoint_extra(rows, consumed, summary.skipped))
             bar.update(1)
     except KeyboardInterrupt:
         summary.stopped = "interrupted (Ctrl-C)"
     finally:
         bar.close()
     summary.seconds = time.perf_counter() - started
-    pipeline.save_checkpoint(checkpoint, extra={"timings": _rows_to_array(rows), "positions": np.array(consumed)})
+    pipeline.save_checkpoint(checkpoint, extra=_checkpoint_extra(rows, consumed, summary.skipped))
+    if summary.paused:
+        return summary
     surfaces = pipeline.finish()
     summary.late, summary.postponed = pipeline.late, pipeline.postponed
     _write_outputs(out, pipeline, surfaces, rows, truths, known, summary, last, last_frame)
@@ -309,6 +328,13 @@ def _write_timings(path: Path, rows: list[dict]) -> None:
 
 
 _TIMING_COLUMNS = ("frame", "timestamp", *STAGES, "total", "late", "deferred")
+
+
+def _checkpoint_extra(rows: list[dict], consumed: int, skipped: list[tuple[str, str]]) -> dict[str, np.ndarray]:
+    """What a resumed run needs beside the pipeline: the timing rows, the input positions consumed, the inputs
+    skipped as unreadable."""
+    return {"timings": _rows_to_array(rows), "positions": np.array(consumed),
+            "skipped": np.array(skipped, dtype=str).reshape(-1, 2)}
 
 
 def _rows_to_array(rows: list[dict]) -> np.ndarray:
