@@ -169,7 +169,7 @@ def contention_text(times: dict[str, list[float]], task_sums: dict[int, list[flo
             "Dask threads run on the same two cores, which with one worker have a core to themselves. The 2-worker "
             "batch's "
             f"wall time is {100 * (times['warm 2'][best] / (wall_2 / 2) - 1):+.0f} % over half its tasks' sum "
-            "(the two workers' shares of the recordings differ, and the last task runs alone).")
+            "(the two workers' shares of the work differ at the end: the last task or part runs alone).")
 
 
 def three_text(times: dict[str, list[float]], n_frames: int) -> str:
