@@ -32,7 +32,6 @@ import os
 for _name in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMBA_NUM_THREADS"):
     os.environ.setdefault(_name, "1")
 
-import inspect  # noqa: E402
 import logging  # noqa: E402
 import shutil  # noqa: E402
 import sys  # noqa: E402
@@ -43,14 +42,13 @@ from pathlib import Path  # noqa: E402
 import numpy as np  # noqa: E402
 from threadpoolctl import threadpool_limits  # noqa: E402
 
-from rangesurf.batch import _local_cluster, output_names, run_batch  # noqa: E402
+from rangesurf.batch import PART_FRAMES, _local_cluster, output_names, run_batch  # noqa: E402
 from rangesurf.bench import machine_description, write_results  # noqa: E402
 from rangesurf.runner import run  # noqa: E402
 
 INPUTS = ["sim:arena", "sim:corridor", "sim:arena", "sim:corridor"]
 SEEDS = [1, 2, 3, 4]
 COMPARED = ("trajectory.txt", "model.ply")
-PART_FRAMES = inspect.signature(run_batch).parameters["part_frames"].default
 
 
 def sequential(root: Path, n_frames: int) -> float:

@@ -63,6 +63,8 @@ from rangesurf.runner import RunSummary
 __all__ = ["BatchItem", "BatchSummary", "run_batch", "output_names"]
 
 _EXTRA_HINT = "pip install 'rangesurf[distributed]'"
+# Input positions per task when recordings run as chains of parts (about 2.5 s of SR-3000 frames).
+PART_FRAMES = 50
 # Worker processes of the local cluster: the pipeline is single-threaded by design, and one
 # recording per core is the parallelism; threaded BLAS, OpenMP or Numba would only contend.
 _ONE_THREAD = {"OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1", "NUMBA_NUM_THREADS": "1"}
@@ -151,7 +153,7 @@ def run_batch(
     sensor: str | None = None,
     seed: int | Sequence[int] = 0,
     overwrite: bool = False,
-    part_frames: int = 50,
+    part_frames: int = PART_FRAMES,
     progress: bool = True,
 ) -> BatchSummary:
     """Run every input through the main job on a Dask cluster, each into its own folder.

@@ -155,14 +155,15 @@ def _command_run(args: argparse.Namespace) -> int:
 
 
 def _command_batch(args: argparse.Namespace) -> int:
-    from rangesurf.batch import run_batch
+    from rangesurf.batch import PART_FRAMES, run_batch
     from rangesurf.config import PipelineConfig
 
     config = PipelineConfig.load(args.config) if args.config else None
     seed = args.seed[0] if len(args.seed) == 1 else args.seed
     batch = run_batch(args.inputs, args.out, scheduler=args.scheduler, workers=args.workers, config=config,
                       frames=args.frames, sensor=args.sensor, seed=seed, overwrite=args.overwrite,
-                      part_frames=args.part_frames, progress=not args.quiet)
+                      part_frames=PART_FRAMES if args.part_frames is None else args.part_frames,
+                      progress=not args.quiet)
     print(f"rangesurf batch: {len(batch.items)} inputs on {batch.workers} Dask worker(s) at {batch.scheduler} in "
           f"{batch.seconds:.1f} s, {len(batch.failed)} failed; summary in {batch.out / 'batch.json'}")
     for item in batch.items:
@@ -419,7 +420,7 @@ def build_parser() -> argparse.ArgumentParser:
     batch.add_argument("--seed", type=int, nargs="+", default=[0],
                        help="simulation seed: one for all inputs or one per input (default 0)")
     batch.add_argument("--overwrite", action="store_true", help="replace the outputs of earlier runs in the input folders")
-    batch.add_argument("--part-frames", type=int, default=50, metavar="N",
+    batch.add_argument("--part-frames", type=int, default=None, metavar="N",
                        help="with more inputs than workers, run each recording as a chain of tasks of N frames, "
                             "so that the recordings take turns (default: 50)")
     batch.add_argument("--quiet", action="store_true", help="no progress bar")
