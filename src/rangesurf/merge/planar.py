@@ -741,9 +741,22 @@ def _fuse_points(points, noise, fit, registration, plane, reach, origin, axes, c
         if block < 0 or tile_column != last_tile_column or tile_row != last_tile_row:
             block = block_of(directory, blocks, tiles, column, row)
             last_tile_column, last_tile_row = tile_column, tile_row
+        # `_slot_in`, written out: called here (inlined or not) it took twice the time of the whole loop body
+        # without it (94 against 42 ns per point; numba counts references to the arrays it is handed).
         slot, is_updated, is_added = -1, 0, 0
         if block >= 0:
-            slot, count, is_updated, is_added = _slot_in(block, column, row, coords, count, blocks, stamps, stamp, misses)
+            slot = blocks[block, row & (TILE - 1), column & (TILE - 1)]
+            if slot >= 0:
+                is_updated = np.int64(stamps[slot] != stamp)
+            elif count < coords.shape[0]:
+                slot = count
+                coords[slot, 0], coords[slot, 1], coords[slot, 2] = column, row, 0
+                blocks[block, row & (TILE - 1), column & (TILE - 1)] = slot
+                count += 1
+                is_added = 1
+            if slot >= 0:
+                stamps[slot] = stamp
+                misses[slot] = 0
         if slot < 0:
             stop, stop_column, stop_row = k, column, row
             break
