@@ -84,13 +84,13 @@ class CellIndex:
 @numba.njit(**_JIT, inline="always")
 def find(directory, blocks, tiles, column, row):  # pragma: no cover - compiled
     """Slot of cell (column, row), -1 if absent."""
-    tile_row, tile_column = _tile_of(directory, tiles, column, row)
-    if tile_row < 0:
-        return -1
-    block = directory[tile_row, tile_column]
-    if block < 0:
-        return -1
-    return blocks[block, row & _MASK, column & _MASK]
+    # One expression, no early return: inlined into a loop, the form with returns (and `_tile_of`) took 2.5
+    # times as long (`_touching` on a pipeline's calls, 1.30 -> 0.51 ms).
+    tile_row = (row >> TILE_SHIFT) - tiles[1]
+    tile_column = (column >> TILE_SHIFT) - tiles[0]
+    inside = (tile_row >= 0) & (tile_column >= 0) & (tile_row < directory.shape[0]) & (tile_column < directory.shape[1])
+    block = directory[tile_row, tile_column] if inside else -1
+    return blocks[block, row & _MASK, column & _MASK] if block >= 0 else -1
 
 
 @numba.njit(**_JIT, inline="always")
