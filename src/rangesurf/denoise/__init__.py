@@ -9,6 +9,7 @@ ground truth (`metrics`); `denoise_range` joins them for one frame.
 
 import numpy as np
 
+from rangesurf._checks import check_range_image, check_range_sigma
 from rangesurf.denoise import metrics
 from rangesurf.denoise.diffusion import (
     CONDUCTIONS,
@@ -19,7 +20,7 @@ from rangesurf.denoise.diffusion import (
     anisotropic_diffusion,
 )
 from rangesurf.denoise.layered import layer_weights, layered_denoise
-from rangesurf.denoise.outliers import remove_cutoff, remove_flying_pixels, remove_isolated
+from rangesurf.denoise.outliers import _remove_outliers, remove_cutoff, remove_flying_pixels, remove_isolated
 from rangesurf.denoise.phase import PHASE_PRESETS, phase_preserving_denoise
 from rangesurf.frame import SensorModel
 
@@ -96,15 +97,13 @@ def denoise_range(
     """
     if method not in METHODS:
         raise ValueError(f"unknown denoising method {method!r}; expected one of {', '.join(METHODS)}")
-    range_image = np.asarray(range_image, dtype=np.float32)
-    sigma = None if sensor is None else sensor.range_sigma(range_image, intensity)
+    range_image = check_range_image(range_image)
+    sigma = None if sensor is None else check_range_sigma(range_image, sensor.range_sigma(range_image, intensity))
     if remove_outliers:
         # Flying pixels first: the cut-off readings beside them are the
         # "far side" of their jump (outliers module notes).
-        range_image = remove_flying_pixels(range_image, range_sigma=sigma, rays=rays)
-        if sensor is not None and sensor.beyond_max_range == "clamp":
-            range_image = remove_cutoff(range_image, max_range=sensor.max_range)
-        range_image = remove_isolated(range_image, range_sigma=sigma)
+        clamped = sensor is not None and sensor.beyond_max_range == "clamp"
+        range_image = _remove_outliers(range_image, sigma, rays, sensor.max_range if clamped else None)
     if method == "diffusion":
         return anisotropic_diffusion(range_image, range_sigma=sigma)
     if method == "phase":
