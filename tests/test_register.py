@@ -227,13 +227,14 @@ def test_icp_quality_is_that_of_the_final_pose():
     frames, _ = simulate.simulate_sequence("arena", "sr3000", 2, seed=3)
     projection = frames[0].sensor.projection
     target, source_grid = (
-        (frame.rays * denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)[..., None])
-        .astype(np.float32) for frame in frames)
+        (frame.rays * denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity,
+                                    rays=frame.rays)[..., None]).astype(np.float32) for frame in frames)
     normals = estimate_normals(target, projection=projection)
     truth = np.linalg.inv(frames[0].pose) @ frames[1].pose
     guess = truth.copy()
     guess[:3, 3] += (0.01, -0.005, 0.008)
-    result = icp(source_grid, target.astype(np.float64), normals, initial=guess, target_projection=projection, levels=(4, 2))
+    result = icp(source_grid, target.astype(np.float64), normals, initial=guess, target_projection=projection,
+                 levels=(4, 2))
     assert result.converged and result.iterations > 2
     source = source_grid.reshape(-1, 3)
     source = source[np.isfinite(source).all(axis=1)][::2]
@@ -266,7 +267,8 @@ def test_weighted_paths_agree():
     noise = _source_noise(source_sigma, source.points)
     variance = _target_variance(target_sigma, points, normals)
     associate = _Associator(points, normals, projection, variance)
-    information, paired, inliers, rmse, normalized_rmse = _pass_at(associate, source_points[valid], motion, 0.1, np.inf, noise)
+    information, paired, inliers, rmse, normalized_rmse = _pass_at(associate, source_points[valid], motion, 0.1, np.inf,
+                                                                   noise)
     # The same pairs by NumPy's projective association, their variances by the k-d tree path's function.
     pairs = associate(source_points[valid], motion, 0.1)
     u = np.round(projection.fx * pairs.target[:, 0] / pairs.target[:, 2] + projection.cx).astype(int)

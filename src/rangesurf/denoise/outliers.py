@@ -364,15 +364,15 @@ def _remove_outliers(image: np.ndarray, sigma: np.ndarray | None, rays: ArrayLik
     passes that took a fifth of these steps' time at 640x480.
     """
     defaults = remove_flying_pixels.__kwdefaults__
-    removed = _flying_kernel(image, _sigma_image(image, None) if sigma is None else sigma, defaults["jump"], defaults["threshold"],
-                             defaults["slope_ratio"], _DIRECTIONS, _ray_array(rays, image.shape),
+    removed = _flying_kernel(image, _sigma_image(image, None) if sigma is None else sigma, defaults["jump"],
+                             defaults["threshold"], defaults["slope_ratio"], _DIRECTIONS, _ray_array(rays, image.shape),
                              math.cos(math.radians(defaults["max_angle"])))
     image = _finish(image, removed, False)
     if max_range is not None:
         image = remove_cutoff(image, max_range=max_range)
     defaults = remove_isolated.__kwdefaults__
-    removed = _isolated_kernel(image, _sigma_image(image, None) if sigma is None else sigma, defaults["threshold"], defaults["radius"],
-                               defaults["min_support"])
+    removed = _isolated_kernel(image, _sigma_image(image, None) if sigma is None else sigma, defaults["threshold"],
+                               defaults["radius"], defaults["min_support"])
     return _finish(image, removed, False)
 
 
