@@ -242,7 +242,7 @@ def icp(
         raise ValueError(f"method must be one of {ICP_METHODS}, got {method!r}")
     source_points = _as_points(source, "source")
     target_array = np.asarray(target)
-    if not np.issubdtype(target_array.dtype, np.floating):
+    if target_array.dtype.kind != "f":
         target_array = target_array.astype(np.float64)
     organized = target_array.ndim == 3
     if organized and target_array.shape[2] != 3 or not organized and (target_array.ndim != 2 or target_array.shape[1] != 3):
@@ -250,7 +250,7 @@ def icp(
     normals_array = None
     if target_normals is not None:
         normals_array = np.asarray(target_normals)
-        if not np.issubdtype(normals_array.dtype, np.floating):
+        if normals_array.dtype.kind != "f":
             normals_array = normals_array.astype(np.float64)
         if normals_array.shape != target_array.shape:
             raise ValueError(f"target_normals {normals_array.shape} must match target {target_array.shape}")
@@ -883,7 +883,7 @@ class FrameTracker:
 def _as_points(points: Any, name: str) -> np.ndarray:
     """Valid points as an (N, 3) array (float32 input stays float32: the kernels compute in float64)."""
     array = np.asarray(points)
-    if not np.issubdtype(array.dtype, np.floating):
+    if array.dtype.kind != "f":
         array = array.astype(np.float64)
     if array.ndim == 2 and array.shape[1] == 3:
         array = array[np.newaxis]

@@ -431,7 +431,7 @@ def remove_diffusion_bias(
     rays = np.asarray(rays)
     rays = np.ascontiguousarray(rays, rays.dtype if rays.dtype in (np.float32, np.float64) else np.float64)
     labels = np.asarray(labels)
-    if not np.issubdtype(labels.dtype, np.integer):
+    if labels.dtype.kind not in "iu":
         raise ValueError(f"labels must be integers, got dtype {labels.dtype}")
     labels = np.ascontiguousarray(labels)
     planes = np.ascontiguousarray(planes, np.float64)
@@ -693,7 +693,7 @@ def _pair_scales(
         raise ValueError(
             f"range_sigma must be a number or have the range image's shape {image.shape}, got shape {sigma.shape}"
         )
-    if not (np.issubdtype(sigma.dtype, np.integer) or np.issubdtype(sigma.dtype, np.floating)):
+    if sigma.dtype.kind not in "iuf":
         raise ValueError(f"range_sigma must be real numbers, got dtype {sigma.dtype}")
     sigma = np.ascontiguousarray(sigma, dtype=np.float64)
     scale_east, scale_south, n_bad = _pair_scales_kernel(image, sigma, _conduction_scale(code) / multiple)
