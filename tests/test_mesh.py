@@ -114,8 +114,11 @@ def test_simulated_frame_meshes_every_segment_without_steps():
     for surface in surfaces:
         label = surface.segment
         assert (result.segmentation.labels[surface.pixels[:, 0], surface.pixels[:, 1]] == label).all()
-        offsets = surface.vertices @ surface.plane[:3] + surface.plane[3]
-        assert np.abs(offsets).max() < 0.2  # vertices near their plane (denoised points)
+        offsets = np.abs(surface.vertices @ surface.plane[:3] + surface.plane[3])
+        # Vertices near their plane (denoised points): within the pixels' own range noise (the segments' join test;
+        # pixels of a box's grazing top, 21 cm sigma, may be 20 cm off), and but a few further than 7 cm.
+        sigma = result.range_sigma[surface.pixels[:, 0], surface.pixels[:, 1]]
+        assert (offsets < 3 * sigma).all() and np.percentile(offsets, 99) < 0.07
         # Most of the segment's pixels are vertices if it is mostly one true plane. Not so where it holds
         # surface seen almost edge-on (a box top at eye level), whose triangles are dropped as steps:
         # seed 2 has a 230-pixel segment of several surfaces near a box's grazing top.

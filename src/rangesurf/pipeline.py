@@ -230,7 +230,9 @@ class Pipeline:
                                                projection.cy / step)
         shared_normals = None
         if self.config.segment.segmenter == "region":
-            grown_on = growing_decimation(*points.shape[:2])
+            # Registering at full resolution takes the full-resolution normals: growing every pixel reuses them,
+            # where growing pooled would cost as much again with a second normal estimate.
+            grown_on = 1 if step == 1 else growing_decimation(*points.shape[:2])
             segmentation, grown_normals = segment_planes(points, range_sigma=sigma, projection=projection,
                                                          decimate=grown_on, return_normals=True)
             if step == grown_on:

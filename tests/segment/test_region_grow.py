@@ -238,6 +238,32 @@ def test_decimated_growing_finds_the_same_planes_at_full_resolution():
     assert results[3].mean_normal_error_deg < 1.0
 
 
+def test_pooled_growing_finds_the_planes_of_full_resolution_growing_at_176x144():
+    """The default at 176x144 (grown on a 2x pooled grid, refined at full resolution) against growing every
+    pixel, on raw simulated SR-3000 frames scored against ground truth."""
+    from rangesurf.segment import segment_planes
+
+    correct = {1: 0, 2: 0}
+    errors = {1: [], 2: []}
+    n_truth = 0
+    for frame, truth in [pair for scene in ("arena", "corridor")
+                         for pair in zip(*simulate.simulate_sequence(scene, "sr3000", 4, seed=21))]:
+        points = frame.points.astype(np.float32)
+        sigma = frame.sensor.range_sigma(np.where(np.isfinite(frame.range), frame.range, 1.0), frame.intensity)
+        gt = truth_segmentation(truth, frame.rays)
+        for decimate in (1, None):
+            result = segment_planes(points, range_sigma=sigma, projection=frame.sensor.projection, decimate=decimate)
+            scores = evaluate_segmentation(gt.labels, result.labels, truth_planes=gt.planes,
+                                           machine_planes=result.planes, min_region_size=100)
+            correct[decimate or 2] += scores.correct
+            errors[decimate or 2] += list(scores.normal_errors_deg)
+        n_truth += scores.n_truth
+    # 51 of 54 against 54 here (107 against 109 of 110 on the benchmark's 16 frames).
+    assert n_truth >= 40
+    assert correct[2] >= correct[1] - 3 and correct[2] >= 0.9 * n_truth
+    assert np.mean(errors[2]) < 1.0
+
+
 def test_refine_upsampled_checks_its_inputs():
     from rangesurf.segment import refine_upsampled
 
@@ -458,25 +484,32 @@ def test_segment_planes_takes_the_callers_normals():
     frame = frames[0]
     points = frame.points.astype(np.float32)
     sigma = frame.sensor.range_sigma(np.where(np.isfinite(frame.range), frame.range, 1.0), frame.intensity)
-    assert growing_decimation(*points.shape[:2]) == 1 and growing_decimation(480, 640) == 3
-    normals = estimate_normals(points, projection=frame.sensor.projection, range_sigma=sigma)
-    own = segment_planes(points, range_sigma=sigma, projection=frame.sensor.projection)
-    given = segment_planes(points, range_sigma=sigma, projection=frame.sensor.projection, normals=normals)
+    assert [growing_decimation(*shape) for shape in ((100, 150), (144, 176), (226, 360), (480, 640))] == [1, 2, 2, 3]
+    projection = frame.sensor.projection
+    normals = estimate_normals(points, projection=projection, range_sigma=sigma)
+    own = segment_planes(points, range_sigma=sigma, projection=projection, decimate=1)
+    given = segment_planes(points, range_sigma=sigma, projection=projection, decimate=1, normals=normals)
     assert own.n_segments >= 4
     assert np.array_equal(own.labels, given.labels) and np.array_equal(own.planes, given.planes, equal_nan=True)
+    pooled, pooled_normals = segment_planes(points, range_sigma=sigma, projection=projection, return_normals=True)
+    again = segment_planes(points, range_sigma=sigma, projection=projection, normals=pooled_normals)
+    assert pooled_normals.shape == (72, 88, 3) and pooled.n_segments >= 4
+    assert np.array_equal(pooled.labels, again.labels) and np.array_equal(pooled.planes, again.planes, equal_nan=True)
     with pytest.raises(ValueError, match="decimated by 2"):
         segment_planes(points, range_sigma=sigma, normals=normals, decimate=2)
     with pytest.raises(ValueError, match="must match"):
-        segment_planes(points, range_sigma=sigma, normals=normals[1:])
+        segment_planes(points, range_sigma=sigma, normals=normals[1:], decimate=1)
 
 
 @pytest.mark.parametrize("decimate", [1, 2])
 def test_segment_planes_returns_the_normals_it_grew_with(decimate):
-    """``return_normals``: the normals of the grid grown on are `estimate_normals`' of that grid (what the
-    pipeline registers with), and the segmentation is the one without them."""
+    """``return_normals``: the normals of the grid grown on are `estimate_normals`' of that grid (the pooled one
+    when decimated, with the coarse ladder), and the segmentation is the one without them."""
+    from rangesurf._grid import point_ranges, pooled_grid
     from rangesurf.frame import PinholeProjection
     from rangesurf.normals import estimate_normals
     from rangesurf.segment import segment_planes
+    from rangesurf.segment._frame import _COARSE_MAX_WINDOW
 
     frames, _ = simulate.simulate_sequence("arena", "sr3000", 1, seed=4)
     frame = frames[0]
@@ -485,13 +518,64 @@ def test_segment_planes_returns_the_normals_it_grew_with(decimate):
     projection = frame.sensor.projection
     segmentation, normals = segment_planes(points, range_sigma=sigma, projection=projection, decimate=decimate,
                                            return_normals=True)
-    coarse = PinholeProjection(projection.fx / decimate, projection.fy / decimate, projection.cx / decimate,
-                               projection.cy / decimate)
-    expected = estimate_normals(np.ascontiguousarray(points[::decimate, ::decimate]), projection=coarse,
-                                range_sigma=np.ascontiguousarray(sigma[::decimate, ::decimate]))
+    if decimate == 1:
+        expected = estimate_normals(points, projection=projection, range_sigma=sigma)
+    else:
+        distance, valid, _ = point_ranges(points)
+        grid, grid_sigma = pooled_grid(points, valid, distance, sigma, 2, projection.fx, projection.fy,
+                                       projection.cx, projection.cy)
+        coarse = PinholeProjection(projection.fx / 2, projection.fy / 2, (projection.cx - 0.5) / 2,
+                                   (projection.cy - 0.5) / 2)
+        expected = estimate_normals(grid, projection=coarse, range_sigma=grid_sigma, max_window=_COARSE_MAX_WINDOW)
     assert np.array_equal(normals, expected, equal_nan=True) and np.isfinite(normals).mean() > 0.9
     alone = segment_planes(points, range_sigma=sigma, projection=projection, decimate=decimate)
     assert alone.n_segments >= 4 and np.array_equal(segmentation.labels, alone.labels)
+
+
+def test_pooled_grid_puts_the_median_range_on_the_block_ray():
+    """On a plane seen through a pinhole, each pooled point lies on the plane and on the ray of its block's
+    centre (the coarse projection); a spike in a block does not move it; the sigma is the median's."""
+    from rangesurf._grid import point_ranges, pooled_grid
+    from rangesurf.frame import PinholeProjection
+
+    projection = PinholeProjection(fx=60.0, fy=60.0, cx=21.3, cy=15.7)
+    rows, cols = np.mgrid[0:31, 0:44].astype(np.float64)
+    rays = np.dstack([(cols - projection.cx) / projection.fx, (rows - projection.cy) / projection.fy, np.ones_like(rows)])
+    normal, d = np.array([0.2, -0.3, -0.93]) / np.linalg.norm([0.2, -0.3, -0.93]), 2.5
+    points = rays * (-d / (rays @ normal))[..., None]
+    points[4, 6] *= 1.5  # a spike in block (2, 3)
+    points[0:3, 0:3] = np.nan  # block (0, 0) empty, blocks (0, 1) and (1, 0) partly
+    points = points.astype(np.float32)
+    sigma = np.full(rows.shape, 0.01)
+    distance, valid, _ = point_ranges(points)
+    pooled, pooled_sigma = pooled_grid(points, valid, distance, sigma, 2, projection.fx, projection.fy,
+                                       projection.cx, projection.cy)
+    assert pooled.shape == (16, 22, 3) and pooled.dtype == np.float32
+    assert np.isnan(pooled[0, 0]).all() and pooled_sigma[0, 0] == 1.0
+    found = np.isfinite(pooled[..., 0])
+    assert found.sum() == 16 * 22 - 1
+    # Blocks of four valid points: on the plane within a twentieth of the noise (the median of four ranges is the
+    # mean of the middle two, and the range varies nearly linearly across a block); the spike's block within a
+    # fraction of the spike's 1.2 m.
+    offsets = np.abs(pooled.astype(np.float64) @ normal + d)
+    full = valid.reshape(31, 44)[:30].reshape(15, 2, 22, 2).all(axis=(1, 3))
+    full[2, 3] = False
+    assert full.sum() == 15 * 22 - 5 and np.all(offsets[:15][full] < 0.05 * 0.01)
+    assert offsets[2, 3] < 0.02
+    # On the rays of the coarse pinhole: pixel i of the pooled grid is centred on pixel 2 i + 0.5.
+    coarse = PinholeProjection(fx=30.0, fy=30.0, cx=(projection.cx - 0.5) / 2, cy=(projection.cy - 0.5) / 2)
+    i, j = 5, 7
+    ray = np.array([(j - coarse.cx) / coarse.fx, (i - coarse.cy) / coarse.fy, 1.0])
+    np.testing.assert_allclose(pooled[i, j] / pooled[i, j, 2], ray, atol=1e-5)
+    # The median of four normal readings has 0.546 sigma, the mean of two 0.707 (block (0, 1) lost a row).
+    assert pooled_sigma[5, 5] == pytest.approx(0.01 * 0.546, rel=1e-3)
+    assert pooled_sigma[0, 1] == pytest.approx(0.01 * 0.707, rel=1e-3)
+    # Without a pinhole the point lies along its block's mean ray, at the median range.
+    general, _ = pooled_grid(points, valid, distance, sigma, 2, 0.0, 0.0, 0.0, 0.0)
+    block = points[10:12, 14:16].reshape(-1, 3).astype(np.float64)
+    mean_ray = (block / np.linalg.norm(block, axis=1, keepdims=True)).mean(axis=0)
+    expected = mean_ray / np.linalg.norm(mean_ray) * np.median(np.linalg.norm(block, axis=1))
+    np.testing.assert_allclose(general[5, 7], expected, rtol=1e-5)
 
 
 def test_plane_rms_matches_point_distances():

@@ -8,7 +8,7 @@
   comparison against ground-truth labels (the field's standard score).
 
 Every segmenter returns a `Segmentation` (labels, planes, residuals, sizes);
-`segment_planes` runs normals and region growing (decimating large frames),
+`segment_planes` runs normals and region growing (on a pooled, coarser grid for frames of 20,000 pixels or more),
 `segment_frame` denoising, normals and a segmenter on one `RangeFrame`.
 """
 
