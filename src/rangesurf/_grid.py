@@ -143,34 +143,43 @@ def pooled_grid(points, valid, distance, sigma, factor, fx, fy, cx, cy):  # prag
     pooled = np.full((rows, columns, 3), np.nan, np.float32)
     pooled_sigma = np.ones((rows, columns))
     block = np.empty(factor * factor)
+    pinhole = fx > 0.0
     half = 0.5 * (factor - 1)
+    ray_u = (factor * np.arange(columns) + half - cx) / fx if pinhole else np.zeros(columns)
     for i in range(rows):
+        ray_v = (factor * i + half - cy) / fy if pinhole else 0.0
         for j in range(columns):
             n = 0
-            sigma_sum = 0.0
+            sigma_sum = total = 0.0
+            smallest, largest = math.inf, -math.inf
             ray_x = ray_y = ray_z = 0.0
             for a in range(factor * i, min(factor * i + factor, height)):
                 for b in range(factor * j, min(factor * j + factor, width)):
                     if not valid[a, b]:
                         continue
                     value = np.float64(distance[a, b])
-                    # Insertion into the sorted block: at most factor^2 values.
-                    k = n
-                    while k > 0 and block[k - 1] > value:
-                        block[k] = block[k - 1]
-                        k -= 1
-                    block[k] = value
+                    block[n] = value
+                    total += value
+                    smallest = min(smallest, value)
+                    largest = max(largest, value)
                     n += 1
                     sigma_sum += sigma[a, b]
-                    ray_x += points[a, b, 0] / value
-                    ray_y += points[a, b, 1] / value
-                    ray_z += points[a, b, 2] / value
+                    if not pinhole:
+                        ray_x += points[a, b, 0] / value
+                        ray_y += points[a, b, 1] / value
+                        ray_z += points[a, b, 2] / value
             if n == 0:
                 continue
-            median = 0.5 * (block[(n - 1) // 2] + block[n // 2])
-            if fx > 0.0:
-                ray_x = (factor * j + half - cx) / fx
-                ray_y = (factor * i + half - cy) / fy
+            if n <= 2:
+                median = total / n
+            elif n <= 4:
+                # The middle one of three, or the mean of the middle two of four, without sorting.
+                median = (total - smallest - largest) / (n - 2)
+            else:
+                median = _middle(block[:n])
+            if pinhole:
+                ray_x = ray_u[j]
+                ray_y = ray_v
                 ray_z = 1.0
             scale = median / math.sqrt(ray_x * ray_x + ray_y * ray_y + ray_z * ray_z)
             pooled[i, j, 0] = ray_x * scale
@@ -178,6 +187,20 @@ def pooled_grid(points, valid, distance, sigma, factor, fx, fy, cx, cy):  # prag
             pooled[i, j, 2] = ray_z * scale
             pooled_sigma[i, j] = sigma_sum / n * _median_standard_error(n)
     return pooled, pooled_sigma
+
+
+@numba.njit(**_JIT)
+def _middle(values):  # pragma: no cover - compiled
+    """Median of a few values (the mean of the middle two for an even count), sorting them in place."""
+    for k in range(1, values.size):
+        value = values[k]
+        m = k
+        while m > 0 and values[m - 1] > value:
+            values[m] = values[m - 1]
+            m -= 1
+        values[m] = value
+    n = values.size
+    return 0.5 * (values[(n - 1) // 2] + values[n // 2])
 
 
 @numba.njit(**_JIT, inline="always")
