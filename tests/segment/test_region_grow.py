@@ -570,6 +570,11 @@ def test_pooled_grid_puts_the_median_range_on_the_block_ray():
     # The median of four normal readings has 0.546 sigma, the mean of two 0.707 (block (0, 1) lost a row).
     assert pooled_sigma[5, 5] == pytest.approx(0.01 * 0.546, rel=1e-3)
     assert pooled_sigma[0, 1] == pytest.approx(0.01 * 0.707, rel=1e-3)
+    # An odd factor takes the block's centre pixel.
+    thirds, thirds_sigma = pooled_grid(points, valid, distance, sigma, 3, projection.fx, projection.fy,
+                                       projection.cx, projection.cy)
+    assert thirds.shape == (11, 15, 3) and thirds_sigma[4, 5] == 0.01
+    np.testing.assert_allclose(thirds[4, 5], points[13, 16], rtol=1e-6)
     # Without a pinhole the point lies along its block's mean ray, at the median range.
     general, _ = pooled_grid(points, valid, distance, sigma, 2, 0.0, 0.0, 0.0, 0.0)
     block = points[10:12, 14:16].reshape(-1, 3).astype(np.float64)
