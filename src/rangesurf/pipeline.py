@@ -231,7 +231,8 @@ class Pipeline:
         shared_normals = None
         if self.config.segment.segmenter == "region":
             # Registering at full resolution takes the full-resolution normals: growing every pixel reuses them,
-            # where growing pooled would cost as much again with a second normal estimate.
+            # where growing pooled plus a second normal estimate would cost about as much (176x144: 3.3 + 1.7
+            # against 4.6 ms).
             grown_on = 1 if step == 1 else growing_decimation(*points.shape[:2])
             segmentation, grown_normals = segment_planes(points, range_sigma=sigma, projection=projection,
                                                          decimate=grown_on, return_normals=True)

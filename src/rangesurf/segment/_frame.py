@@ -26,8 +26,9 @@ SEGMENTERS = ("region", "nxd")
 
 # Large frames are grown on a grid pooled to about this many pixels, then refined at full resolution;
 _GROWING_PIXELS = 40_000
-# and from this many pixels on, at least 2x pooled. At 176x144 (SR-3000) that finds as many planes, more on
-# denoised frames, in about half the time (benchmarks/segmentation.py).
+# and from this many pixels on, at least 2x pooled. At 176x144 (SR-3000) that took 3.3 instead of 4.6 ms a frame
+# and found 107 / 101 / 98 / 102 / 104 of 110 planes (raw / diffusion / layered / phase / outlier removal only)
+# against 109 / 95 / 94 / 98 / 109 (benchmarks/segmentation.py).
 _POOLED_FROM = 20_000
 # Largest normal window on the pooled grid: 9 coarse pixels already span 18 or more of the full grid (at
 # 176x144 the full-resolution ladder's 15 found 5 fewer planes on raw frames; at 640x480, 3x, either finds all).
@@ -66,13 +67,13 @@ def segment_planes(
         Enables the fast pinhole normal path (`estimate_normals`).
     decimate : int, optional
         Grow the regions on a grid ``decimate`` times coarser, each point
-        the median range of a ``decimate`` x ``decimate`` block
+        pooling the middle of a ``decimate`` x ``decimate`` block
         (`rangesurf._grid.pooled_grid`), and carry them back to full
         resolution (`refine_upsampled`). Default: `growing_decimation` (3
         for 640x480, 2 for an SR-3000 or a 3DTK scan, 1 for frames under
         20,000 pixels). ``decimate=1`` grows every pixel: on raw 176x144
-        SR-3000 frames it finds 2 more planes of 110 with normals 0.05
-        degrees closer, in twice the time.
+        SR-3000 frames it finds 2 more planes of 110 with normals 0.06
+        degrees closer, in 1.4 times the time.
     normals : array, optional
         The normals of the grid grown on, as an earlier call's
         ``return_normals`` gave them (at ``decimate=1`` those of
