@@ -37,7 +37,6 @@ from pathlib import Path
 
 import numpy as np
 
-from rangesurf._checks import check_point_grid
 from rangesurf._grid import median_footprint, points_along_rays
 from rangesurf.config import PipelineConfig
 from rangesurf.denoise import denoise_range
@@ -49,7 +48,8 @@ from rangesurf.merge import GlobalModel, MergeStep, TSDFVolume
 from rangesurf.mesh import Surface, segment_vertices, triangulate_segments
 from rangesurf.normals import estimate_normals
 from rangesurf.register import FrameTracker, RegistrationResult
-from rangesurf.segment import Segmentation, growing_decimation, segment_nxd, segment_planes
+from rangesurf.segment import (GrowingGrid, Segmentation, growing_decimation, pooled_frame_grid, segment_nxd,
+                               segment_planes)
 
 __all__ = ["Pipeline", "FrameResult", "STAGES"]
 
@@ -220,27 +220,17 @@ class Pipeline:
 
         projection = frame.sensor.projection if isinstance(frame.sensor.projection, PinholeProjection) else None
         step = self._decimation(frame)
-        icp_points, icp_sigma = points, sigma
-        if step > 1:
-            # Copied out once (normals, segmentation and the tracker's keyframe would each copy the strided view).
-            icp_points, icp_sigma = check_point_grid(points[::step, ::step]), sigma[::step, ::step]
-        icp_projection = projection
-        if projection is not None and step > 1:
-            icp_projection = PinholeProjection(projection.fx / step, projection.fy / step, projection.cx / step,
-                                               projection.cy / step)
-        shared_normals = None
+        grid = None
         if self.config.segment.segmenter == "region":
-            # Registering at full resolution takes the full-resolution normals: growing every pixel reuses them,
-            # where growing pooled plus a second normal estimate would cost about as much (176x144: 3.3 + 1.7
-            # against 4.6 ms).
-            grown_on = 1 if step == 1 else growing_decimation(*points.shape[:2])
-            segmentation, grown_normals = segment_planes(points, range_sigma=sigma, projection=projection,
-                                                         decimate=grown_on, return_normals=True)
-            if step == grown_on:
-                # Segmentation grew on the grid registration uses: one normal estimate for both.
-                shared_normals = grown_normals
+            segmentation, grown = segment_planes(points, range_sigma=sigma, projection=projection, return_grid=True)
+            if grown.decimate == step:
+                # Registration takes the grid segmentation grew on: one pooling and one normal estimate for both.
+                grid = grown
         else:
-            segmentation = segment_nxd(points, estimate_normals(points, projection=projection, range_sigma=sigma))
+            normals = estimate_normals(points, projection=projection, range_sigma=sigma)
+            segmentation = segment_nxd(points, normals)
+            if step == 1:
+                grid = GrowingGrid(points, sigma, projection, normals, 1)
         lap("segment")
 
         # UL1 (sensor level): diffusion leaves a systematic error on every frame's planes (convex range
@@ -277,8 +267,19 @@ class Pipeline:
         # ICP's residuals are correlated over a patch of the full-resolution grid; on a thinned grid
         # neighbours lie further apart and err less alike (calibrated: benchmarks/calibration.py).
         self.tracker.icp_variance_scale = self.config.register.icp_variance_scale / step**_ICP_STEP_EXPONENT
-        normals = shared_normals if shared_normals is not None else estimate_normals(
-            icp_points, projection=icp_projection, range_sigma=icp_sigma)
+        if grid is not None:
+            icp_points, normals = grid.points, grid.normals
+        elif step == 1 and projection is not None:
+            # Segmentation grew on a pooled grid (176x144 SR-3000 frames), registration takes every pixel: only a
+            # keyframe's normals are used (ICP's target), so they are estimated only for a frame that becomes one
+            # (about one in ten). On the pooled grid's points and normals as the keyframe, the SR-3000 arena drifted
+            # more (600 frames, seed 5: 27 against 20 mm over the last 100 frames, keyframes alone).
+            icp_points = points
+            normals = functools.partial(estimate_normals, points, projection=projection, range_sigma=sigma)
+        else:
+            grid = pooled_frame_grid(points, range_sigma=sigma, projection=projection, decimate=step)
+            icp_points, normals = grid.points, grid.normals
+        icp_projection = projection if grid is None else grid.projection
         if icp_projection is None:
             # No pinhole: closest-point registration on the valid points (k-d tree).
             keep = np.isfinite(icp_points).all(axis=-1) & np.isfinite(normals).all(axis=-1)

@@ -42,7 +42,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Callable
 
 import numba
 import numpy as np
@@ -653,7 +653,7 @@ class FrameTracker:
     def track(
         self,
         points: ArrayLike,
-        normals: ArrayLike | None,
+        normals: ArrayLike | Callable[[], ArrayLike] | None,
         *,
         projection: PinholeProjection | None = None,
         odometry: ArrayLike | None = None,
@@ -665,8 +665,11 @@ class FrameTracker:
         ----------
         points : (H, W, 3) or (N, 3) float array
             The frame's points (sensor frame), NaN where invalid.
-        normals : same shape, optional
-            Its normals (kept if the frame becomes a keyframe; needed for point-to-plane).
+        normals : same shape, or a function returning them, optional
+            Its normals (kept if the frame becomes a keyframe; needed for
+            point-to-plane). Only a keyframe's are used: a function is
+            called only if this frame becomes one (the pipeline's SR-3000
+            frames: one in about ten).
         projection : PinholeProjection, optional
             For projective association of organized frames.
         odometry : (4, 4) array, optional
@@ -681,7 +684,8 @@ class FrameTracker:
         """
         odometry_pose = None if odometry is None else check_rigid_transform(odometry, "odometry")
         points = np.asarray(points)
-        normals = None if normals is None else np.asarray(normals)
+        if normals is not None and not callable(normals):
+            normals = np.asarray(normals)
         sigma = None if range_sigma is None or self.method != "point_to_plane" else np.asarray(range_sigma)
         if self._keyframe is None:
             self.pose = np.eye(4) if odometry_pose is None else odometry_pose.copy()
@@ -768,6 +772,8 @@ class FrameTracker:
         sigma: np.ndarray | None,
     ) -> None:
         """Keep a frame (and copies of its pose and covariance) as the keyframe the next frames register onto."""
+        if callable(normals):
+            normals = np.asarray(normals())
         # The points compacted: a decimated frame's are a strided view of the full-resolution grid, in which
         # every pixel the projective passes look up costs a cache line of its own (Kinect pipeline: tracking
         # about 10 % faster for one copy per keyframe), and which the keyframe would otherwise keep alive.

@@ -491,9 +491,9 @@ def test_segment_planes_takes_the_callers_normals():
     given = segment_planes(points, range_sigma=sigma, projection=projection, decimate=1, normals=normals)
     assert own.n_segments >= 4
     assert np.array_equal(own.labels, given.labels) and np.array_equal(own.planes, given.planes, equal_nan=True)
-    pooled, pooled_normals = segment_planes(points, range_sigma=sigma, projection=projection, return_normals=True)
-    again = segment_planes(points, range_sigma=sigma, projection=projection, normals=pooled_normals)
-    assert pooled_normals.shape == (72, 88, 3) and pooled.n_segments >= 4
+    pooled, grid = segment_planes(points, range_sigma=sigma, projection=projection, return_grid=True)
+    again = segment_planes(points, range_sigma=sigma, projection=projection, normals=grid.normals)
+    assert grid.normals.shape == (72, 88, 3) and grid.decimate == 2 and pooled.n_segments >= 4
     assert np.array_equal(pooled.labels, again.labels) and np.array_equal(pooled.planes, again.planes, equal_nan=True)
     with pytest.raises(ValueError, match="decimated by 2"):
         segment_planes(points, range_sigma=sigma, normals=normals, decimate=2)
@@ -502,13 +502,14 @@ def test_segment_planes_takes_the_callers_normals():
 
 
 @pytest.mark.parametrize("decimate", [1, 2])
-def test_segment_planes_returns_the_normals_it_grew_with(decimate):
-    """``return_normals``: the normals of the grid grown on are `estimate_normals`' of that grid (the pooled one
-    when decimated, with the coarse ladder), and the segmentation is the one without them."""
+def test_segment_planes_returns_the_grid_it_grew_on(decimate):
+    """``return_grid``: the grid grown on is the frame or `pooled_grid`'s pooling of it on the coarse pinhole, its
+    normals are `estimate_normals`' of that grid (with the coarse ladder when pooled), `pooled_frame_grid` gives
+    the same grid without growing, and the segmentation is the one without them."""
     from rangesurf._grid import point_ranges, pooled_grid
     from rangesurf.frame import PinholeProjection
     from rangesurf.normals import estimate_normals
-    from rangesurf.segment import segment_planes
+    from rangesurf.segment import pooled_frame_grid, segment_planes
     from rangesurf.segment._frame import _COARSE_MAX_WINDOW
 
     frames, _ = simulate.simulate_sequence("arena", "sr3000", 1, seed=4)
@@ -516,9 +517,10 @@ def test_segment_planes_returns_the_normals_it_grew_with(decimate):
     points = frame.points.astype(np.float32)
     sigma = frame.sensor.range_sigma(np.where(np.isfinite(frame.range), frame.range, 1.0), frame.intensity)
     projection = frame.sensor.projection
-    segmentation, normals = segment_planes(points, range_sigma=sigma, projection=projection, decimate=decimate,
-                                           return_normals=True)
+    segmentation, grown = segment_planes(points, range_sigma=sigma, projection=projection, decimate=decimate,
+                                         return_grid=True)
     if decimate == 1:
+        grid, grid_sigma, coarse = points, sigma, projection
         expected = estimate_normals(points, projection=projection, range_sigma=sigma)
     else:
         distance, valid, _ = point_ranges(points)
@@ -527,7 +529,13 @@ def test_segment_planes_returns_the_normals_it_grew_with(decimate):
         coarse = PinholeProjection(projection.fx / 2, projection.fy / 2, (projection.cx - 0.5) / 2,
                                    (projection.cy - 0.5) / 2)
         expected = estimate_normals(grid, projection=coarse, range_sigma=grid_sigma, max_window=_COARSE_MAX_WINDOW)
-    assert np.array_equal(normals, expected, equal_nan=True) and np.isfinite(normals).mean() > 0.9
+    assert grown.decimate == decimate and grown.projection == coarse
+    assert np.array_equal(grown.points, grid, equal_nan=True) and np.array_equal(grown.range_sigma, grid_sigma)
+    assert np.array_equal(grown.normals, expected, equal_nan=True) and np.isfinite(grown.normals).mean() > 0.9
+    alone_grid = pooled_frame_grid(points, range_sigma=sigma, projection=projection, decimate=decimate)
+    assert alone_grid.decimate == decimate and alone_grid.projection == coarse
+    assert np.array_equal(alone_grid.points, grid, equal_nan=True) and np.array_equal(alone_grid.normals, expected,
+                                                                                       equal_nan=True)
     alone = segment_planes(points, range_sigma=sigma, projection=projection, decimate=decimate)
     assert alone.n_segments >= 4 and np.array_equal(segmentation.labels, alone.labels)
 

@@ -12,7 +12,8 @@ Every segmenter returns a `Segmentation` (labels, planes, residuals, sizes);
 `segment_frame` denoising, normals and a segmenter on one `RangeFrame`.
 """
 
-from rangesurf.segment._frame import SEGMENTERS, SegmentedFrame, growing_decimation, segment_frame, segment_planes
+from rangesurf.segment._frame import (SEGMENTERS, GrowingGrid, SegmentedFrame, growing_decimation, pooled_frame_grid,
+                                      segment_frame, segment_planes)
 from rangesurf.segment._segmentation import Segmentation
 from rangesurf.segment.evaluate import (
     SegmentationScores,
@@ -38,6 +39,8 @@ __all__ = [
     "segment_nxd",
     "segment_planes",
     "growing_decimation",
+    "GrowingGrid",
+    "pooled_frame_grid",
     "transform_planes",
     "truth_segmentation",
 ]

@@ -19,7 +19,10 @@ from rangesurf.segment._segmentation import Segmentation
 from rangesurf.segment.nxd import segment_nxd
 from rangesurf.segment.region_grow import _grow, _refine_upsampled, default_min_size
 
-__all__ = ["SEGMENTERS", "SegmentedFrame", "growing_decimation", "segment_frame", "segment_planes"]
+__all__ = [
+    "SEGMENTERS", "GrowingGrid", "SegmentedFrame", "growing_decimation", "pooled_frame_grid", "segment_frame",
+    "segment_planes",
+]
 
 SEGMENTERS = ("region", "nxd")
 
@@ -33,6 +36,83 @@ _POOLED_FROM = 20_000
 # Largest normal window on the pooled grid: 9 coarse pixels already span 18 or more of the full grid (at
 # 176x144 the full-resolution ladder's 15 found 5 fewer planes on raw frames; at 640x480, 3x, either finds all).
 _COARSE_MAX_WINDOW = 9
+
+
+@dataclass(frozen=True)
+class GrowingGrid:
+    """The grid `segment_planes` grows regions on: the frame's own, or a pooled, coarser copy (`pooled_frame_grid`).
+
+    Parameters
+    ----------
+    points : (H', W', 3) float32
+        Sensor-frame points (metres), NaN where invalid.
+    range_sigma : (H', W') float64
+        Their range noise (metres); a pooled point's is lower than a pixel's.
+    projection : PinholeProjection or None
+        The grid's pinhole (the frame's scaled to the coarser grid), if the frame has one.
+    normals : (H', W', 3) float32 or None
+        The grid's normals, once estimated.
+    decimate : int
+        Full-resolution pixels per grid pixel along each axis.
+    """
+
+    points: np.ndarray
+    range_sigma: np.ndarray
+    projection: PinholeProjection | None
+    normals: np.ndarray | None
+    decimate: int
+
+
+def _check_decimate(decimate) -> None:
+    if isinstance(decimate, bool) or not isinstance(decimate, (int, np.integer)) or decimate < 1:
+        raise ValueError(f"decimate must be an integer >= 1, got {decimate!r}")
+
+
+def _checked_ranges(points: np.ndarray, range_sigma) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The points' ranges, valid mask and (H, W) sigma, raising on Inf points or a bad sigma."""
+    distance, valid, n_infinite = point_ranges(points)
+    if n_infinite:
+        check_point_grid(points)  # raises, in the shared wording
+    sigma = check_range_sigma(distance, np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), distance.shape))
+    return distance, valid, sigma
+
+
+def _pooled(points, distance, valid, sigma, projection, decimate) -> GrowingGrid:
+    """The grid ``decimate`` times coarser whose points pool the frame's blocks (`rangesurf._grid.pooled_grid`)."""
+    coarse_projection = None
+    rays = (0.0, 0.0, 0.0, 0.0)
+    if projection is not None:
+        rays = (float(projection.fx), float(projection.fy), float(projection.cx), float(projection.cy))
+        # Coarse pixel i is centred on pixel decimate * i + (decimate - 1) / 2 of the full grid.
+        half = 0.5 * (decimate - 1)
+        coarse_projection = PinholeProjection(
+            fx=projection.fx / decimate, fy=projection.fy / decimate,
+            cx=(projection.cx - half) / decimate, cy=(projection.cy - half) / decimate,
+        )
+    coarse_points, coarse_sigma = pooled_grid(points, valid, distance, sigma, decimate, *rays)
+    return GrowingGrid(coarse_points, coarse_sigma, coarse_projection, None, decimate)
+
+
+def pooled_frame_grid(
+    points: ArrayLike, *, range_sigma: ArrayLike | float, projection: PinholeProjection | None = None, decimate: int
+) -> GrowingGrid:
+    """The grid `segment_planes` grows on at ``decimate``, with its normals, without growing regions.
+
+    For a caller that wants that grid at another decimation than the
+    segmentation's (the pipeline registers on it). ``decimate=1`` is the
+    frame itself.
+    """
+    _check_decimate(decimate)
+    points = _point_grid(points)
+    distance, valid, sigma = _checked_ranges(points, range_sigma)
+    if decimate == 1:
+        grid = GrowingGrid(points, np.ascontiguousarray(sigma), projection, None, 1)
+        window = {}
+    else:
+        grid = _pooled(points, distance, valid, sigma, projection, decimate)
+        window = {"max_window": _COARSE_MAX_WINDOW}
+    normals = estimate_normals(grid.points, projection=grid.projection, range_sigma=grid.range_sigma, **window)
+    return dataclasses.replace(grid, normals=normals)
 
 
 def growing_decimation(height: int, width: int) -> int:
@@ -53,8 +133,8 @@ def segment_planes(
     projection: PinholeProjection | None = None,
     decimate: int | None = None,
     normals: ArrayLike | None = None,
-    return_normals: bool = False,
-) -> Segmentation | tuple[Segmentation, np.ndarray]:
+    return_grid: bool = False,
+) -> Segmentation | tuple[Segmentation, GrowingGrid]:
     """Normals and region growing in one call, decimating large frames for speed.
 
     Parameters
@@ -76,18 +156,19 @@ def segment_planes(
         degrees closer, in 1.4 times the time.
     normals : array, optional
         The normals of the grid grown on, as an earlier call's
-        ``return_normals`` gave them (at ``decimate=1`` those of
+        ``return_grid`` gave them (at ``decimate=1`` those of
         `estimate_normals`), when the caller has them already.
-    return_normals : bool
-        Also return the normals grown with (those given, or those
-        estimated here): registration can use them (the pipeline does).
+    return_grid : bool
+        Also return the grid grown on, with its normals (those given, or
+        those estimated here): registration can use them (the pipeline
+        does).
 
     Returns
     -------
     segmentation : Segmentation
-    normals : (H', W', 3) float32
-        With ``return_normals``: the normals of the grid grown on (the
-        pooled grid when decimated).
+    grid : GrowingGrid
+        With ``return_grid``: the grid grown on (the pooled one when
+        decimated) and its normals.
 
     Examples
     --------
@@ -103,8 +184,7 @@ def segment_planes(
     height, width = points.shape[:2]
     if decimate is None:
         decimate = growing_decimation(height, width)
-    if isinstance(decimate, bool) or not isinstance(decimate, (int, np.integer)) or decimate < 1:
-        raise ValueError(f"decimate must be an integer >= 1, got {decimate!r}")
+    _check_decimate(decimate)
     if normals is not None:
         normals = np.asarray(normals)
         grown = points[::decimate, ::decimate].shape
@@ -119,35 +199,21 @@ def segment_planes(
         else:
             distance, valid, _ = point_ranges(points)
         segmentation = _grow(points, normals, sigma, distance, valid)
-        return (segmentation, normals) if return_normals else segmentation
-    distance, valid, n_infinite = point_ranges(points)
-    if n_infinite:
-        check_point_grid(points)  # raises, in the shared wording
-    sigma = check_range_sigma(
-        distance, np.broadcast_to(np.asarray(range_sigma, dtype=np.float64), (height, width))
-    )
-    # Each coarse point pools a block (`pooled_grid`): the median range on the block's central ray.
-    coarse_projection = None
-    rays = (0.0, 0.0, 0.0, 0.0)
-    if projection is not None:
-        rays = (float(projection.fx), float(projection.fy), float(projection.cx), float(projection.cy))
-        # Coarse pixel i is centred on pixel decimate * i + (decimate - 1) / 2 of the full grid.
-        half = 0.5 * (decimate - 1)
-        coarse_projection = PinholeProjection(
-            fx=projection.fx / decimate, fy=projection.fy / decimate,
-            cx=(projection.cx - half) / decimate, cy=(projection.cy - half) / decimate,
-        )
-    coarse_points, coarse_sigma = pooled_grid(points, valid, distance, sigma, decimate, *rays)
+        if not return_grid:
+            return segmentation
+        return segmentation, GrowingGrid(points, sigma, projection, normals, 1)
+    distance, valid, sigma = _checked_ranges(points, range_sigma)
+    grid = _pooled(points, distance, valid, sigma, projection, decimate)
     if normals is None:
         normals, _, coarse_distance, coarse_valid = _normals_and_ranges(
-            coarse_points, coarse_projection, max_window=_COARSE_MAX_WINDOW, range_sigma=coarse_sigma
+            grid.points, grid.projection, max_window=_COARSE_MAX_WINDOW, range_sigma=grid.range_sigma
         )
     else:
-        coarse_distance, coarse_valid, _ = point_ranges(coarse_points)
-    coarse = _grow(coarse_points, normals, coarse_sigma, coarse_distance, coarse_valid,
+        coarse_distance, coarse_valid, _ = point_ranges(grid.points)
+    coarse = _grow(grid.points, normals, grid.range_sigma, coarse_distance, coarse_valid,
                    min_size=max(1, round(default_min_size(height, width) / decimate**2)))
     segmentation = _refine_upsampled(points, distance, valid, sigma, coarse, decimate, normals)
-    return (segmentation, normals) if return_normals else segmentation
+    return (segmentation, dataclasses.replace(grid, normals=normals)) if return_grid else segmentation
 
 
 @dataclass(frozen=True)
