@@ -519,6 +519,31 @@ def test_a_new_keyframe_once_the_paired_share_drops_by_the_overlap_loss():
     assert switches[0.15] >= 1 and switches[0.15] < switches[0.05]
 
 
+def test_a_normals_function_is_called_for_keyframes_only_and_tracks_the_same():
+    """Normals given as a function (the pipeline's SR-3000 frames) are computed only for the frames that become
+    keyframes (the first, then each switch), and every pose and covariance is the one the arrays give."""
+    from rangesurf.register import FrameTracker
+
+    frames, _ = simulate.simulate_sequence("arena", "sr3000", 30, seed=5)
+    eager, lazy = FrameTracker(), FrameTracker()
+    calls, keyframes = [], 0
+    for k, frame in enumerate(frames):
+        points = frame.points.astype(np.float32)
+        key_pose = eager.state().get("key_pose")
+        expected = eager.track(points, estimate_normals(points, projection=frame.sensor.projection),
+                               projection=frame.sensor.projection)
+        keyframes += key_pose is None or not np.array_equal(eager.state()["key_pose"], key_pose)
+
+        def normals(points=points, k=k):
+            calls.append(k)
+            return estimate_normals(points, projection=frame.sensor.projection)
+
+        got = lazy.track(points, normals, projection=frame.sensor.projection)
+        assert np.array_equal(got.T_world_sensor, expected.T_world_sensor)
+        assert np.array_equal(got.covariance, expected.covariance)
+    assert calls[0] == 0 and 2 <= len(calls) == keyframes < len(frames) // 2
+
+
 def _keyframe_switches(frames, loss: float) -> int:
     from rangesurf.register import FrameTracker
 
