@@ -536,6 +536,8 @@ def test_segment_planes_returns_the_grid_it_grew_on(decimate):
     assert alone_grid.decimate == decimate and alone_grid.projection == coarse
     assert np.array_equal(alone_grid.points, grid, equal_nan=True) and np.array_equal(alone_grid.normals, expected,
                                                                                        equal_nan=True)
+    with pytest.raises(ValueError, match="decimate must be an integer >= 1"):
+        pooled_frame_grid(points, range_sigma=sigma, decimate=0)
     alone = segment_planes(points, range_sigma=sigma, projection=projection, decimate=decimate)
     assert alone.n_segments >= 4 and np.array_equal(segmentation.labels, alone.labels)
 
