@@ -9,7 +9,7 @@ from rangesurf.denoise import denoise_range
 from rangesurf.frame import get_sensor
 from rangesurf.normals import estimate_normals
 from rangesurf._planefit import plane_rms, planes_from_moments
-from rangesurf.segment import Segmentation, grow_regions, region_grow
+from rangesurf.segment import Segmentation, grow_regions, region_grow, segment_planes
 from rangesurf.segment.evaluate import evaluate_segmentation, truth_segmentation
 
 SR3000 = get_sensor("sr3000")
@@ -29,6 +29,28 @@ def segment(points, sigma=0.002, **options):
     points = points.astype(np.float32)
     normals = estimate_normals(points, projection=SR3000.projection, range_sigma=sigma)
     return grow_regions(points, normals, range_sigma=sigma, **options)
+
+
+def test_boundaries_settle_at_a_shallow_crease():
+    """The arena's ramp meets the floor at 18 degrees, under the growing's 20: the region that reaches the
+    crease first grows pixels past it, within its distance test. Refined pass after pass, the boundaries
+    settle at the crease: on these frames 4.2-4.6 % of the labelled pixels lay in a segment of another true
+    surface after one pass, 1.0-1.1 % after eight."""
+    frames, truths = simulate.simulate_sequence("arena", "sr3000", 81, seed=5)
+    for k in (40, 60, 80):
+        frame, truth = frames[k], truths[k]
+        smooth = denoise_range(frame.range, sensor=frame.sensor, intensity=frame.intensity, rays=frame.rays)
+        points = (frame.rays * smooth[..., None]).astype(np.float32)
+        sigma = frame.sensor.range_sigma(np.where(np.isfinite(smooth), smooth, 1.0), frame.intensity)
+        labels = segment_planes(points, range_sigma=sigma, projection=frame.sensor.projection).labels
+        mixed = labelled = 0
+        for label in range(1, labels.max() + 1):
+            surfaces = truth.surface_id[(labels == label) & (truth.surface_id >= 0)]
+            if surfaces.size:
+                labelled += surfaces.size
+                mixed += surfaces.size - np.bincount(surfaces).max()
+        assert labelled > 0.8 * np.isfinite(smooth).sum()
+        assert mixed < 0.02 * labelled, (k, mixed, labelled)
 
 
 def test_box_on_a_floor_gives_each_face():
