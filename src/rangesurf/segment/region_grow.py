@@ -1037,7 +1037,7 @@ def _grow_kernel(points, normals, distance, sigma, state, order, distance_sigmas
 
 @numba.njit(**_JIT)
 def _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, depth_jump):  # pragma: no cover - compiled
-    """Move each boundary pixel to the neighbouring segment whose plane it fits best (in place), until the boundaries settle.
+    """Move each boundary pixel to the neighbouring segment whose plane it fits best (in place), until they settle.
 
     Growing is greedy: the region that reaches a pixel first keeps it, so
     near a crease or a small surface some pixels end up on the wrong side.
@@ -1129,7 +1129,7 @@ def _refine_boundaries(points, distance, sigma, valid, labels, planes, moments, 
 
 @numba.njit(**_JIT, inline="always")
 def _best_boundary_label(points, distance, sigma, labels, planes, i, j, depth_jump):  # pragma: no cover - compiled
-    """The label `_refine_boundaries` gives the labelled pixel ``(i, j)``: its own, or a neighbour's whose plane is nearer."""
+    """The label `_refine_boundaries` gives the labelled pixel ``(i, j)``: its own or a nearer neighbour plane's."""
     height, width = labels.shape
     own = labels[i, j]
     x = points[i, j, 0]
